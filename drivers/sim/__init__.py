@@ -1,0 +1,1 @@
+"""The virtual robot: physics, a virtual pigpiod and a virtual Marvelmind."""

@@ -1,0 +1,7 @@
+"""Benchmarks run by `robotd bench`: each compares robotd against a named baseline in one process.
+
+Each benchmark module has `NAME`, a one-line `__doc__`, and `run(quick: bool) -> dict[str, float]`, which prints
+its own lines and returns its figures (for `--json`). `quick` shrinks the workload for a smoke test.
+"""
+
+BENCHMARK_MODULES: tuple[str, ...] = ()

@@ -1,0 +1,1 @@
+"""Sub-commands of the robotd command line, one module per capability."""

@@ -1,0 +1,300 @@
+"""robotd's configuration: YAML in, frozen dataclasses out, validated once at start-up.
+
+Each section is a frozen dataclass; `load()` reports every problem at once by dotted path (see `robotd.schema`).
+Units are in the key names (`_m`, `_s`, `_hz`, `_rad`); everything inside robotd is SI.
+Wheel order everywhere: front_left, front_right, rear_left, rear_right (the paper's w1..w4).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import yaml
+
+from robotd.schema import (
+    ConfigError,
+    build,
+    each,
+    gpio_pin,
+    in_range,
+    non_negative,
+    port_number,
+    positive,
+    reference,
+    section,
+    setting,
+)
+
+WHEELS = ("front_left", "front_right", "rear_left", "rear_right")
+
+
+def _sign(value: int) -> str | None:
+    """+1 or -1."""
+    return None if value in (1, -1) else f"must be 1 or -1, got {value!r}"
+
+
+@dataclass(frozen=True, slots=True)
+class RobotConfig:
+    """Geometry of the mecanum robot (paper section III)."""
+
+    wheel_radius_m: float = setting(0.046875, "Wheel radius r (paper: 46.875 mm).", positive)
+    lx_m: float = setting(0.135, "Half the front-rear wheel distance (paper's lfr: 135 mm).", positive)
+    ly_m: float = setting(0.125, "Half the left-right wheel distance (paper's lrl: 125 mm).", positive)
+    ips_offset_m: tuple[float, float] = setting(
+        (0.0, 0.0), "Position of the Marvelmind beacon in the body frame (x forward, y left): its lever arm."
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class EncoderPins:
+    """One wheel's quadrature encoder."""
+
+    a: int = setting(4, "BCM GPIO of channel A.", gpio_pin)
+    b: int = setting(17, "BCM GPIO of channel B.", gpio_pin)
+    sign: int = setting(1, "+1 if counting up means the wheel turns forward, else -1.", _sign)
+
+
+@dataclass(frozen=True, slots=True)
+class EncoderWheels:
+    """Encoder pins per wheel (defaults: the Pi 4 wiring documented in config/robot.yaml)."""
+
+    front_left: EncoderPins = section(lambda: EncoderPins(4, 17, 1), "Front-left wheel (w1).")
+    front_right: EncoderPins = section(lambda: EncoderPins(27, 22, 1), "Front-right wheel (w2).")
+    rear_left: EncoderPins = section(lambda: EncoderPins(5, 6, 1), "Rear-left wheel (w3).")
+    rear_right: EncoderPins = section(lambda: EncoderPins(2, 3, 1), "Rear-right wheel (w4).")
+
+
+@dataclass(frozen=True, slots=True)
+class EncodersConfig:
+    """Quadrature encoders read through pigpiod's notification stream."""
+
+    ppr: int = setting(1700, "Pulses per revolution of one channel, at the wheel.", positive)
+    decoding: Literal["x1", "x2", "x4"] = setting(
+        "x4", "Edges counted per pulse: x1, x2 or x4 (x4 = 4 * ppr counts a turn)."
+    )
+    glitch_filter_us: int = setting(
+        5,
+        "pigpio glitch filter: a level must be steady this long (us) to be reported; 0 disables it.",
+        in_range(0, 300_000),
+    )
+    publish_rate_hz: float = setting(
+        100.0, "Rate at which decoded wheel ticks are handed to the estimator.", in_range(1.0, 2000.0)
+    )
+    wheels: EncoderWheels = section(EncoderWheels, "Pins and direction per wheel.")
+
+    @property
+    def counts_per_rev(self) -> int:
+        """Counts per wheel turn after decoding."""
+        return self.ppr * {"x1": 1, "x2": 2, "x4": 4}[self.decoding]
+
+
+@dataclass(frozen=True, slots=True)
+class MotorPins:
+    """One L298 channel: enable (PWM) and the two direction inputs."""
+
+    enable: int = setting(12, "BCM GPIO of the L298 enable input (PWM).", gpio_pin)
+    in1: int = setting(16, "BCM GPIO of the first direction input (high = forward).", gpio_pin)
+    in2: int = setting(20, "BCM GPIO of the second direction input (high = backward).", gpio_pin)
+    sign: int = setting(1, "+1 if a positive duty turns the wheel forward, else -1.", _sign)
+
+
+@dataclass(frozen=True, slots=True)
+class MotorWheels:
+    """Motor pins per wheel."""
+
+    front_left: MotorPins = section(lambda: MotorPins(12, 16, 20, 1), "Front-left wheel (w1).")
+    front_right: MotorPins = section(lambda: MotorPins(13, 21, 26, 1), "Front-right wheel (w2).")
+    rear_left: MotorPins = section(lambda: MotorPins(18, 23, 24, 1), "Rear-left wheel (w3).")
+    rear_right: MotorPins = section(lambda: MotorPins(19, 25, 11, 1), "Rear-right wheel (w4).")
+
+
+@dataclass(frozen=True, slots=True)
+class MotorsConfig:
+    """L298 motor drivers through gpiozero on pigpiod."""
+
+    pwm_frequency_hz: int = setting(1000, "PWM frequency of the enable pins.", in_range(10, 40_000))
+    duty_limit: float = setting(1.0, "Largest duty magnitude ever sent to a motor, in (0, 1].", in_range(0.01, 1.0))
+    wheels: MotorWheels = section(MotorWheels, "Pins and direction per wheel.")
+
+
+@dataclass(frozen=True, slots=True)
+class PigpiodConfig:
+    """The pigpio daemon (real on the Pi, virtual in simulation)."""
+
+    host: str = setting("127.0.0.1", "Host of pigpiod (keep it on localhost: pigpiod has no authentication).")
+    port: int = setting(8888, "TCP port of pigpiod.", port_number)
+    connect_timeout_s: float = setting(2.0, "Give up one connection attempt after this long.", positive)
+    reconnect_max_s: float = setting(5.0, "Longest wait between reconnection attempts (backoff cap).", positive)
+
+
+@dataclass(frozen=True, slots=True)
+class MarvelmindConfig:
+    """The Marvelmind hedgehog on a serial port."""
+
+    device: str = setting(
+        "/dev/marvelmind",
+        "Serial device: a path, a /dev/serial/by-id/... path or a glob (first match is used).",
+    )
+    baudrate: int = setting(500000, "UART baud rate (ignored over USB).", positive)
+    hedgehog_address: int | Literal["auto"] = setting(
+        "auto", "Address of our hedgehog, 0..255, or auto to learn it from the first frame."
+    )
+    stale_after_s: float = setting(0.3, "A fix is stale after this long without a valid one.", positive)
+    default_latency_s: float = setting(
+        0.05, "Latency assumed when a frame's time-shift field is 0 (unknown).", in_range(0.0, 5.0)
+    )
+    reconnect_max_s: float = setting(2.0, "Longest wait between attempts to reopen a vanished device.", positive)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.hedgehog_address, int) and not 0 <= self.hedgehog_address <= 255:
+            raise ValueError(f"hedgehog_address must be between 0 and 255, got {self.hedgehog_address}")
+
+
+@dataclass(frozen=True, slots=True)
+class EkfConfig:
+    """The Extended Kalman Filter fusing odometry with IPS fixes."""
+
+    initial_pose: tuple[float, float, float] = setting((0.0, 0.0, 0.0), "Initial x (m), y (m), theta (rad).")
+    initial_sigma: tuple[float, float, float] = setting(
+        (1.0, 1.0, 0.1), "Initial standard deviation of x (m), y (m), theta (rad).", each(positive)
+    )
+    ips_sigma_m: float = setting(0.03, "Standard deviation of one IPS fix in x and y (paper's s_ips).", positive)
+    gating: bool = setting(True, "Reject fixes whose Mahalanobis distance exceeds the chi-square gate.")
+    gate_probability: float = setting(
+        0.999,
+        "Chi-square (2 dof) probability of the gate: fixes beyond it are rejected.",
+        in_range(0.5, 0.999999),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class TeleopConfig:
+    """UDP teleop: authenticated body-frame velocity commands."""
+
+    bind: str = setting("127.0.0.1", "Address to listen on (0.0.0.0 for a remote control on the network).")
+    port: int = setting(47800, "UDP port.", port_number)
+    key_file: str = setting("/etc/robotd/teleop.key", "File holding the shared HMAC-SHA256 key.")
+    allow_unauthenticated: bool = setting(False, "Accept datagrams without a key (loopback simulation only).")
+    deadman_timeout_s: float = setting(0.5, "Stop the motors when no valid command arrived for this long.", positive)
+    max_vx_mps: float = setting(0.6, "Largest forward speed magnitude.", positive)
+    max_vy_mps: float = setting(0.6, "Largest sideways speed magnitude.", positive)
+    max_wz_rad_s: float = setting(2.0, "Largest turn rate magnitude.", positive)
+    max_linear_accel_mps2: float = setting(1.0, "Acceleration limit on vx and vy.", positive)
+    max_angular_accel_rad_s2: float = setting(4.0, "Acceleration limit on wz.", positive)
+
+
+@dataclass(frozen=True, slots=True)
+class PoseSocketConfig:
+    """The local pose stream: newline-delimited JSON on a Unix socket."""
+
+    path: str = setting("/run/robotd/pose.sock", "Path of the Unix socket.")
+    mode: str = setting("0660", "Permissions of the socket file (octal).")
+    rate_hz: float = setting(20.0, "Pose messages per second.", in_range(0.1, 1000.0))
+
+    def __post_init__(self) -> None:
+        try:
+            int(self.mode, 8)
+        except ValueError:
+            raise ValueError(f"mode must be octal permissions such as '0660', got {self.mode!r}") from None
+
+
+@dataclass(frozen=True, slots=True)
+class ControlConfig:
+    """The motor control loop: wheel speed PID with feed-forward."""
+
+    rate_hz: float = setting(50.0, "Control loop rate.", in_range(1.0, 1000.0))
+    kp: float = setting(0.02, "Proportional gain, duty per rad/s of wheel speed error.", non_negative)
+    ki: float = setting(0.1, "Integral gain, duty per rad of accumulated error.", non_negative)
+    kd: float = setting(0.0, "Derivative gain, duty per rad/s^2.", non_negative)
+    wheel_max_speed_rad_s: float = setting(
+        20.0, "Wheel speed at full duty; feed-forward duty = set-point / this.", positive
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class SimConfig:
+    """The virtual robot (only read by the simulator, never by the daemon)."""
+
+    seed: int = setting(1, "Seed of every random process of the simulation.", non_negative)
+
+
+@dataclass(frozen=True, slots=True)
+class RobotdConfig:
+    """The whole configuration of robotd."""
+
+    robot: RobotConfig = section(RobotConfig, "Robot geometry.")
+    encoders: EncodersConfig = section(EncodersConfig, "Wheel encoders.")
+    motors: MotorsConfig = section(MotorsConfig, "Motor drivers.")
+    pigpiod: PigpiodConfig = section(PigpiodConfig, "Connection to pigpiod.")
+    marvelmind: MarvelmindConfig = section(MarvelmindConfig, "Marvelmind indoor positioning.")
+    ekf: EkfConfig = section(EkfConfig, "Pose estimation.")
+    teleop: TeleopConfig = section(TeleopConfig, "Remote control over UDP.")
+    pose_socket: PoseSocketConfig = section(PoseSocketConfig, "Pose output.")
+    control: ControlConfig = section(ControlConfig, "Motor control loop.")
+    sim: SimConfig = section(SimConfig, "Virtual robot.")
+
+
+def _cross_checks(config: RobotdConfig) -> list[str]:
+    """Problems that involve more than one field."""
+    problems: list[str] = []
+    owners: dict[int, str] = {}
+    pins: list[tuple[str, int]] = []
+    for wheel in WHEELS:
+        enc: EncoderPins = getattr(config.encoders.wheels, wheel)
+        mot: MotorPins = getattr(config.motors.wheels, wheel)
+        pins += [(f"encoders.wheels.{wheel}.a", enc.a), (f"encoders.wheels.{wheel}.b", enc.b)]
+        pins += [(f"motors.wheels.{wheel}.{name}", getattr(mot, name)) for name in ("enable", "in1", "in2")]
+    for path, pin in pins:
+        if pin in owners:
+            problems.append(f"{path}: GPIO {pin} is already used by {owners[pin]}")
+        else:
+            owners[pin] = path
+    if not config.teleop.allow_unauthenticated and not config.teleop.key_file:
+        problems.append("teleop.key_file: required unless teleop.allow_unauthenticated is true")
+    if config.pose_socket.rate_hz > config.control.rate_hz * 10:
+        problems.append(
+            f"pose_socket.rate_hz: must be at most 10x control.rate_hz ({config.control.rate_hz}), "
+            f"got {config.pose_socket.rate_hz}"
+        )
+    return problems
+
+
+def parse(text: str, source: str = "<config>") -> RobotdConfig:
+    """Parse YAML text into a validated configuration, or raise ConfigError."""
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(error, "problem", None) or str(error)
+        raise ConfigError([f"{source}: invalid YAML{where}: {problem}"]) from None
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise ConfigError([f"{source}: the top level must be a mapping of sections, got {type(raw).__name__}"])
+    config = build(RobotdConfig, raw)
+    problems = _cross_checks(config)
+    if problems:
+        raise ConfigError(problems)
+    return config
+
+
+def load(path: str | Path) -> RobotdConfig:
+    """Read and validate a configuration file, or raise ConfigError."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError([f"{path}: no such configuration file"]) from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError([f"{path}: cannot read: {error}"]) from None
+    return parse(text, str(path))
+
+
+def config_reference() -> str:
+    """The Markdown reference of every configuration key, generated from the schema."""
+    return reference(RobotdConfig)
+
+
+__all__ = ["WHEELS", "ConfigError", "RobotdConfig", "config_reference", "load", "parse"]
