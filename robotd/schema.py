@@ -195,8 +195,10 @@ def _describe(value: Any) -> str:
     return f"{kind.get(type(value), type(value).__name__)} {value!r}"
 
 
-def _build(cls: type[T], raw: Mapping[Any, Any], path: str, problems: list[str]) -> T | None:
+def _build(cls: type[T], raw: Mapping[Any, Any], path: str, problems: list[str], base: Any = None) -> T | None:
+    """Build `cls` from `raw`; keys absent from `raw` keep their value in `base` (the section's real default)."""
     hints = typing.get_type_hints(cls)
+    base = cls() if base is None else base
     fields = {f.name: f for f in dataclasses.fields(typing.cast(Any, cls)) if f.init}
     prefix = f"{path}." if path else ""
     start = len(problems)
@@ -209,7 +211,12 @@ def _build(cls: type[T], raw: Mapping[Any, Any], path: str, problems: list[str])
     for name, fld in fields.items():
         if name not in raw:
             continue
-        converted = _convert(hints[name], raw[name], prefix + name, problems)
+        tp = hints[name]
+        if dataclasses.is_dataclass(tp) and isinstance(raw[name], Mapping):
+            # a nested section starts from its own default (a wheel's pins), not from its class defaults
+            converted = _build(typing.cast(type[Any], tp), raw[name], prefix + name, problems, getattr(base, name))
+        else:
+            converted = _convert(tp, raw[name], prefix + name, problems)
         if converted is None:
             continue
         check: Check | None = fld.metadata.get("check")
@@ -221,7 +228,7 @@ def _build(cls: type[T], raw: Mapping[Any, Any], path: str, problems: list[str])
     if len(problems) > start:
         return None
     try:
-        return cls(**values)
+        return dataclasses.replace(typing.cast(Any, base), **values)  # type: ignore[no-any-return]
     except ValueError as error:  # a section's __post_init__ cross-checks its fields
         problems.append(f"{path or '(top level)'}: {error}")
         return None
