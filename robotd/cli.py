@@ -20,6 +20,12 @@ EX_CONFIG = 78
 COMMAND_MODULES = (
     "robotd.commands.config",
     "robotd.commands.bench",
+    "robotd.commands.ips",
+    "robotd.commands.teleop",
+    "robotd.commands.pose",
+    "robotd.commands.wheels",
+    "robotd.commands.sim",
+    "robotd.commands.replay",
 )
 
 

@@ -14,6 +14,7 @@ from typing import Literal
 import yaml
 
 from robotd.schema import (
+    Check,
     ConfigError,
     build,
     each,
@@ -82,6 +83,9 @@ class EncodersConfig:
     publish_rate_hz: float = setting(
         100.0, "Rate at which decoded wheel ticks are handed to the estimator.", in_range(1.0, 2000.0)
     )
+    pull: Literal["up", "down", "off"] = setting(
+        "up", "Pull resistor of the encoder inputs: up for open-collector encoders, off for push-pull ones."
+    )
     wheels: EncoderWheels = section(EncoderWheels, "Pins and direction per wheel.")
 
     @property
@@ -129,17 +133,26 @@ class PigpiodConfig:
     reconnect_max_s: float = setting(5.0, "Longest wait between reconnection attempts (backoff cap).", positive)
 
 
+def _device_pattern(value: str) -> str | None:
+    """Must not be empty."""
+    return None if value.strip() else "must name a serial device (a path or a glob), got an empty string"
+
+
 @dataclass(frozen=True, slots=True)
 class MarvelmindConfig:
     """The Marvelmind hedgehog on a serial port."""
 
     device: str = setting(
         "/dev/marvelmind",
-        "Serial device: a path, a /dev/serial/by-id/... path or a glob (first match is used).",
+        "Serial device: a path, a /dev/serial/by-id/... path or a glob (first sorted match, resolved on every "
+        "reconnection). robotd only reads it: any write stops the beacon's stream for 5 s.",
+        _device_pattern,
     )
-    baudrate: int = setting(500000, "UART baud rate (ignored over USB).", positive)
+    baudrate: int = setting(500000, "UART baud rate (ignored over USB).", in_range(4800, 500000))
     hedgehog_address: int | Literal["auto"] = setting(
-        "auto", "Address of our hedgehog, 0..255, or auto to learn it from the first frame."
+        "auto",
+        "Address of our hedgehog, 0..255, or auto to learn it from the first position frame not flagged as "
+        "another hedgehog's (flags bit 6). Frames of other addresses are dropped.",
     )
     stale_after_s: float = setting(0.3, "A fix is stale after this long without a valid one.", positive)
     default_latency_s: float = setting(
@@ -154,7 +167,11 @@ class MarvelmindConfig:
 
 @dataclass(frozen=True, slots=True)
 class EkfConfig:
-    """The Extended Kalman Filter fusing odometry with IPS fixes."""
+    """The Extended Kalman Filter fusing odometry with IPS fixes (robotd/ekf.py, robotd/estimator.py).
+
+    Odometry noise is a random walk that grows with distance travelled and angle turned, never with time alone:
+    a robot at rest does not grow uncertain. The `paper_*` keys are used only by the paper's filter as published.
+    """
 
     initial_pose: tuple[float, float, float] = setting((0.0, 0.0, 0.0), "Initial x (m), y (m), theta (rad).")
     initial_sigma: tuple[float, float, float] = setting(
@@ -166,6 +183,73 @@ class EkfConfig:
         0.999,
         "Chi-square (2 dof) probability of the gate: fixes beyond it are rejected.",
         in_range(0.5, 0.999999),
+    )
+    odom_along_sigma_m: float = setting(
+        0.02, "Odometry position error along the body x axis, std per sqrt(metre travelled).", non_negative
+    )
+    odom_across_sigma_m: float = setting(
+        0.03,
+        "Odometry position error along the body y axis (mecanum rollers slip sideways), std per sqrt(metre).",
+        non_negative,
+    )
+    slip_heading_sigma_rad: float = setting(
+        0.05,
+        "Heading drift from unequal wheel traction on an uneven floor, std (rad) per sqrt(metre travelled).",
+        non_negative,
+    )
+    turn_heading_sigma_rad: float = setting(
+        0.05, "Heading error from turning (wheel scrub), std (rad) per sqrt(radian turned).", non_negative
+    )
+    predict_period_s: float = setting(
+        0.05,
+        "Wheel ticks are integrated into one prediction at most this often (0: every sample); the body "
+        "displacement is exact either way, the midpoint heading keeps turns exact to second order.",
+        in_range(0.0, 0.5),
+    )
+    lever_arm: bool = setting(True, "Model the beacon's lever arm (robot.ips_offset_m): the fix depends on theta.")
+    latency_compensation: bool = setting(
+        True, "Fuse each fix at its measurement time by re-predicting from a short history of states and inputs."
+    )
+    history_s: float = setting(
+        1.0,
+        "Length of that history: fixes measured earlier than this before the newest input are dropped.",
+        in_range(0.0, 10.0),
+    )
+    adaptive_ips_noise: bool = setting(
+        True,
+        "Estimate the IPS noise from the median of recent innovations (robust to outliers), never below "
+        "ips_sigma_m nor above ips_sigma_max_m.",
+    )
+    ips_sigma_max_m: float = setting(0.3, "Largest IPS noise the adaptive estimate may reach.", positive)
+    recovery_min_s: float = setting(
+        1.5,
+        "Fixes rejected for at least this long that agree with each other re-seed the position (lock-out recovery); "
+        "longer than any burst of consistent outliers.",
+        in_range(0.1, 60.0),
+    )
+    recovery_min_fixes: int = setting(5, "Rejected fixes needed, at least, before such a recovery.", in_range(2, 1000))
+    recovery_agreement_m: float = setting(
+        0.2,
+        "Rejected fixes agree when each lies within this distance (or 4 sigma of the IPS noise, if larger) of their "
+        "median, after odometry motion is removed.",
+        positive,
+    )
+    heading_align_m: float = setting(
+        0.6,
+        "After start-up and after a recovery, the heading is checked by aligning this much odometry track with the "
+        "fixes (a rotation fit); 0 disables. Makes an unknown initial heading harmless.",
+        non_negative,
+    )
+    heading_min_speed_mps: float = setting(
+        0.02,
+        "Below this speed a fix does not correct the heading: at rest a fix says nothing about it.",
+        non_negative,
+    )
+    paper_sigma_v_mps: float = setting(
+        0.1, "Paper's filter: eq. 9's speed noise std, applied to vx and vy per prediction step.", non_negative
+    )
+    paper_sigma_w_rad_s: float = setting(
+        0.2, "Paper's filter: eq. 9's turn-rate noise std per prediction step.", non_negative
     )
 
 
@@ -183,6 +267,16 @@ class TeleopConfig:
     max_wz_rad_s: float = setting(2.0, "Largest turn rate magnitude.", positive)
     max_linear_accel_mps2: float = setting(1.0, "Acceleration limit on vx and vy.", positive)
     max_angular_accel_rad_s2: float = setting(4.0, "Acceleration limit on wz.", positive)
+    max_datagram_age_s: float = setting(
+        0.25,
+        "Drop a datagram delayed this much more than the fastest one of its sender (clock offset estimated).",
+        in_range(0.01, 10.0),
+    )
+    max_clock_offset_s: float = setting(
+        5.0,
+        "Drop a datagram whose sender clock (Unix time) differs from ours by more than this; 0 disables the check.",
+        non_negative,
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -192,6 +286,14 @@ class PoseSocketConfig:
     path: str = setting("/run/robotd/pose.sock", "Path of the Unix socket.")
     mode: str = setting("0660", "Permissions of the socket file (octal).")
     rate_hz: float = setting(20.0, "Pose messages per second.", in_range(0.1, 1000.0))
+    status_rate_hz: float = setting(
+        1.0, "Status messages (driver counters, filter diagnostics) per second.", in_range(0.01, 100.0)
+    )
+    client_queue: int = setting(64, "Messages queued per client; a slow client loses the oldest.", in_range(1, 100_000))
+    client_stall_s: float = setting(
+        5.0, "Disconnect a client that has accepted no data for this long while messages wait.", positive
+    )
+    max_clients: int = setting(16, "Most clients served at once; more are refused.", in_range(1, 1000))
 
     def __post_init__(self) -> None:
         try:
@@ -211,13 +313,111 @@ class ControlConfig:
     wheel_max_speed_rad_s: float = setting(
         20.0, "Wheel speed at full duty; feed-forward duty = set-point / this.", positive
     )
+    integral_limit: float = setting(
+        0.5, "Largest duty magnitude the integral term may contribute (anti-windup bound).", in_range(0.0, 1.0)
+    )
+
+
+def _span(low: float, high: float) -> Check:
+    """A (min, max) pair with low <= min <= max <= high."""
+
+    def check(pair: tuple[float, float]) -> str | None:
+        if not low <= pair[0] <= pair[1] <= high:
+            return f"must be [min, max] with {low} <= min <= max <= {high}, got [{pair[0]}, {pair[1]}]"
+        return None
+
+    check.__doc__ = f"[min, max] within {low} and {high}."
+    return check
 
 
 @dataclass(frozen=True, slots=True)
 class SimConfig:
-    """The virtual robot (only read by the simulator, never by the daemon)."""
+    """The virtual robot (only read by the simulator, never by the daemon). Defaults: the paper's floor."""
 
     seed: int = setting(1, "Seed of every random process of the simulation.", non_negative)
+    initial_pose: tuple[float, float, float] = setting(
+        (0.0, 0.0, 0.0), "True starting pose: x (m), y (m), theta (rad)."
+    )
+    physics_rate_hz: float = setting(
+        100.0,
+        "Physics steps (and ground truth samples) per second; motors are solved exactly between steps.",
+        in_range(100.0, 10_000.0),
+    )
+    teleop_rate_hz: float = setting(
+        10.0, "Rate at which a scenario's remote control sends commands.", in_range(1.0, 100.0)
+    )
+    motor_max_speed_rad_s: float = setting(22.0, "Wheel speed a motor reaches at full duty (no load).", positive)
+    motor_time_constant_s: float = setting(0.08, "First-order time constant of a motor's speed.", in_range(0.001, 5.0))
+    motor_deadband: float = setting(0.06, "Duty magnitude below which a motor does not turn.", in_range(0.0, 0.9))
+    motor_gain_spread: float = setting(
+        0.03, "Standard deviation of the motors' relative gain mismatch (the wheel PID hides it).", in_range(0.0, 0.5)
+    )
+    traction_mean: float = setting(
+        0.97, "Mean fraction of a wheel's rim speed that moves the ground (1 = no slip).", in_range(0.05, 1.0)
+    )
+    traction_wheel_spread: float = setting(
+        0.016, "Standard deviation of each wheel's constant relative traction mismatch.", in_range(0.0, 0.5)
+    )
+    floor_amplitude: float = setting(
+        0.02, "Standard deviation of the floor's relative traction variation (the uneven floor).", in_range(0.0, 0.5)
+    )
+    floor_modes: int = setting(
+        6, "Number of random plane waves summed into the floor's traction field.", in_range(0, 64)
+    )
+    floor_wavelength_m: tuple[float, float] = setting(
+        (1.0, 4.0), "Shortest and longest wavelength of the floor's traction waves.", _span(0.05, 1000.0)
+    )
+    lateral_efficiency: float = setting(
+        0.97, "Fraction of the kinematic sideways speed the rollers deliver.", in_range(0.05, 1.0)
+    )
+    ips_rate_hz: float = setting(12.0, "Mean rate of the hedgehog's position packets.", in_range(0.1, 100.0))
+    ips_interval_jitter: float = setting(
+        0.1, "Relative standard deviation of the interval between packets.", in_range(0.0, 1.0)
+    )
+    ips_latency_s: tuple[float, float] = setting(
+        (0.05, 0.15),
+        "Range of the uniform latency from measurement to arrival (the time-shift field).",
+        _span(0.0, 60.0),
+    )
+    ips_noise_m: float = setting(0.03, "Standard deviation of a fix's noise in x and in y.", non_negative)
+    ips_noise_z_m: float = setting(0.05, "Standard deviation of a fix's noise in z.", non_negative)
+    ips_height_m: float = setting(0.3, "Height of the hedgehog above the floor.", in_range(-100.0, 100.0))
+    ips_dropout_probability: float = setting(
+        0.03, "Probability that a packet says 'coordinates unavailable'.", in_range(0.0, 1.0)
+    )
+    ips_outage_rate_per_min: float = setting(0.5, "Mean number of outages (beacon lost) per minute.", non_negative)
+    ips_outage_duration_s: tuple[float, float] = setting(
+        (1.0, 5.0), "Range of an outage's uniform duration.", _span(0.0, 3600.0)
+    )
+    ips_outlier_burst_rate_per_min: float = setting(
+        0.6, "Mean number of outlier bursts (echoes) per minute.", non_negative
+    )
+    ips_outlier_burst_duration_s: tuple[float, float] = setting(
+        (0.5, 2.5), "Range of an outlier burst's uniform duration.", _span(0.0, 3600.0)
+    )
+    ips_outlier_m: tuple[float, float] = setting(
+        (1.0, 4.6), "Range of the uniform distance by which a fix in a burst is thrown.", _span(0.0, 1000.0)
+    )
+    ips_frame: Literal["mm", "cm"] = setting(
+        "mm", "Position frames: mm (code 0x0011, stationary beacons 0x0012) or cm (0x0001, 0x0002)."
+    )
+    hedgehog_address: int = setting(7, "Address of the simulated hedgehog.", in_range(0, 255))
+    stationary_beacons: tuple[tuple[float, float, float], ...] = setting(
+        ((-1.0, 1.0, 2.0), (4.0, 1.0, 2.0), (4.0, -4.0, 2.0), (-1.0, -4.0, 2.0)),
+        "Positions (x, y, z in m) of the stationary beacons, addresses 1, 2, ...; sent every beacons_period_s.",
+    )
+    beacons_period_s: float = setting(10.0, "Period of the stationary beacons' frame.", in_range(0.1, 3600.0))
+    scenario_speed_mps: float = setting(0.3, "Speed of a scenario's commands.", in_range(0.01, 5.0))
+    square_side_m: float = setting(3.0, "Side of the square scenario (paper: 3 m).", positive)
+    scenario_pause_s: float = setting(1.0, "Stop between the legs of a scenario.", non_negative)
+    outage_s: float = setting(20.0, "Length of the outage scenario's beacon loss, centred on the run.", non_negative)
+    record_path: str = setting(
+        "", "robotd vhw writes ground truth and the ticks and fixes it produced here (a sensor log); '' disables it."
+    )
+
+    def __post_init__(self) -> None:
+        if len(self.stationary_beacons) > 32:
+            raise ValueError(f"stationary_beacons: at most 32 beacons, got {len(self.stationary_beacons)}")
 
 
 @dataclass(frozen=True, slots=True)

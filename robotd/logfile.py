@@ -130,8 +130,9 @@ def encode(event: Event | Meta) -> str:
                 "type": "truth",
                 "x": _num(event.x),
                 "y": _num(event.y),
-                "theta": _num(event.theta),
             }
+            if math.isfinite(event.theta):  # truth without heading omits it (JSON has no NaN)
+                obj["theta"] = _num(event.theta)
         case Command():
             obj = {"t": _num(event.t), "type": "cmd", "vx": _num(event.vx), "vy": _num(event.vy), "wz": _num(event.wz)}
     return json.dumps(obj, separators=(", ", ": "))

@@ -4,4 +4,9 @@ Each benchmark module has `NAME`, a one-line `__doc__`, and `run(quick: bool) ->
 its own lines and returns its figures (for `--json`). `quick` shrinks the workload for a smoke test.
 """
 
-BENCHMARK_MODULES: tuple[str, ...] = ()
+BENCHMARK_MODULES: tuple[str, ...] = (
+    "robotd.bench.encoders",
+    "robotd.bench.ekf",
+    "robotd.bench.marvelmind",
+    "robotd.bench.sim",
+)

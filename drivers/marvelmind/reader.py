@@ -1,0 +1,198 @@
+"""The Marvelmind serial reader: a thin asyncio adapter that opens the port, feeds the parser and reconnects.
+
+Theory of operation: one `run()` task loops over connection attempts. The device path comes from the configuration
+(a plain path, a /dev/serial/by-id/... link or a glob, first sorted match) and is resolved again on every attempt,
+because a beacon that resets or sleeps comes back under another ttyACM number. pyserial-asyncio-fast opens the port
+in an executor, so the loop never blocks. Bytes are stamped with `clock()` as they are read and fed to the sans-I/O
+`MarvelmindParser`; its events go to `on_event`. The reader never writes to the port: any request stops the
+beacon's stream for 5 s. When the device vanishes (unplug, reset, sleep) it reopens it with a capped exponential
+backoff, logging the outage once when it starts and once when it ends, never once per attempt.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import glob
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import serial
+import serial_asyncio_fast
+
+from drivers.marvelmind.events import Counters, Event, Position
+from drivers.marvelmind.protocol import MarvelmindParser
+from robotd.config import MarvelmindConfig
+
+logger = logging.getLogger("robotd.marvelmind")
+
+CLOSE_TIMEOUT_S = 1.0
+FIRST_RETRY_S = 0.05  # a pseudo-terminal or a USB re-enumeration is usually back within tens of ms
+
+
+class LinkState(enum.Enum):
+    """Where the reader is in its connection cycle."""
+
+    CONNECTING = "connecting"  # never connected yet
+    STREAMING = "streaming"
+    LOST = "lost"  # was streaming; the device vanished and is being reopened
+
+
+@dataclass(frozen=True, slots=True)
+class MarvelmindHealth:
+    """The reader's health at one instant."""
+
+    state: LinkState
+    connected: bool
+    stale: bool  # no valid fix for longer than stale_after_s (or never one)
+    fix_age_s: float | None  # since the arrival of the last valid fix; None before the first
+    device: str | None  # the path that is (or was last) open
+
+
+def resolve_device(pattern: str) -> str | None:
+    """The device path to open: the pattern itself, or the first sorted match of a glob (None when none matches)."""
+    if not glob.has_magic(pattern):
+        return pattern
+    matches = sorted(glob.glob(pattern))
+    return matches[0] if matches else None
+
+
+class Backoff:
+    """Capped exponential delays between reconnection attempts."""
+
+    def __init__(self, first_s: float, cap_s: float) -> None:
+        self.first_s = min(first_s, cap_s)
+        self.cap_s = cap_s
+        self._next_s = self.first_s
+
+    def next_delay(self) -> float:
+        """The wait before the next attempt; each call doubles the following one, up to the cap."""
+        delay = self._next_s
+        self._next_s = min(self._next_s * 2.0, self.cap_s)
+        return delay
+
+    def reset(self) -> None:
+        """After a success: start again from the first delay."""
+        self._next_s = self.first_s
+
+
+class _SerialStream(asyncio.Protocol):
+    """Receives the port's bytes for one connection; `closed` resolves when the connection ends."""
+
+    def __init__(self, on_bytes: Callable[[bytes], None]) -> None:
+        self._on_bytes = on_bytes
+        self.closed: asyncio.Future[Exception | None] = asyncio.get_running_loop().create_future()
+
+    def data_received(self, data: bytes) -> None:
+        try:
+            self._on_bytes(data)
+        except Exception as error:  # noqa: BLE001 - re-raised by run(): a consumer's bug must not vanish in the loop
+            if not self.closed.done():
+                self.closed.set_exception(error)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.closed.done():
+            self.closed.set_result(exc)
+
+
+class MarvelmindReader:
+    """Streams events from a Marvelmind hedgehog on a serial port until cancelled, reconnecting when it vanishes."""
+
+    def __init__(
+        self,
+        config: MarvelmindConfig,
+        on_event: Callable[[Event], None],
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.config = config
+        self.parser = MarvelmindParser(config.hedgehog_address, config.default_latency_s)
+        self._on_event = on_event
+        self._clock = clock
+        self._state = LinkState.CONNECTING
+        self._device: str | None = None
+        self._last_fix_arrival: float | None = None
+        self._outage_since: float | None = None
+        self.reconnections = 0
+
+    @property
+    def counters(self) -> Counters:
+        """The parser's counters (frames by code, CRC failures, junk bytes, ...)."""
+        return self.parser.counters
+
+    def health(self, now: float | None = None) -> MarvelmindHealth:
+        """Connected? Stale? Age of the last valid fix, at `now` (default: the reader's clock)."""
+        now = self._clock() if now is None else now
+        age = None if self._last_fix_arrival is None else now - self._last_fix_arrival
+        return MarvelmindHealth(
+            state=self._state,
+            connected=self._state is LinkState.STREAMING,
+            stale=age is None or age > self.config.stale_after_s,
+            fix_age_s=age,
+            device=self._device,
+        )
+
+    async def run(self) -> None:
+        """Read the port until cancelled; reopen it with capped backoff whenever it vanishes or cannot be opened."""
+        backoff = Backoff(FIRST_RETRY_S, self.config.reconnect_max_s)
+        while True:
+            try:
+                path, transport, stream = await self._open()
+            except (OSError, serial.SerialException) as error:
+                self._note_outage(f"cannot open {self.config.device}: {error}")
+                await asyncio.sleep(backoff.next_delay())
+                continue
+            self._note_streaming(path)
+            backoff.reset()
+            try:
+                reason = await stream.closed
+            finally:
+                await self._close(transport, stream)  # on cancellation too: the port is never left open
+            self._note_outage(f"{path} vanished: {reason or 'closed'}")
+            self._state = LinkState.LOST
+            self.parser.finish()  # a frame cut by the outage is junk, not the start of the next connection's
+
+    async def _open(self) -> tuple[str, Any, _SerialStream]:
+        path = resolve_device(self.config.device)
+        if path is None:
+            raise FileNotFoundError(f"no device matches {self.config.device!r}")
+        stream = _SerialStream(self._on_bytes)
+        transport, _ = await serial_asyncio_fast.create_serial_connection(
+            asyncio.get_running_loop(), lambda: stream, path, baudrate=self.config.baudrate
+        )
+        return path, transport, stream
+
+    @staticmethod
+    async def _close(transport: Any, stream: _SerialStream) -> None:
+        """Close the port and wait until it is closed (the transport closes it in an executor)."""
+        transport.close()
+        with contextlib.suppress(Exception):  # the reason the connection ended was already taken from `closed`
+            await asyncio.wait_for(asyncio.shield(stream.closed), CLOSE_TIMEOUT_S)
+
+    def _on_bytes(self, data: bytes) -> None:
+        arrival = self._clock()
+        for event in self.parser.feed(data, arrival):
+            if isinstance(event, Position):
+                self._last_fix_arrival = event.arrival
+            self._on_event(event)
+
+    def _note_outage(self, reason: str) -> None:
+        if self._outage_since is None:  # once per outage, not once per attempt
+            self._outage_since = self._clock()
+            logger.warning("marvelmind: %s; retrying every <= %.1f s", reason, self.config.reconnect_max_s)
+        else:
+            logger.debug("marvelmind: %s", reason)
+
+    def _note_streaming(self, path: str) -> None:
+        if self._outage_since is not None:
+            logger.info("marvelmind: streaming from %s after %.2f s", path, self._clock() - self._outage_since)
+            if self._state is LinkState.LOST:
+                self.reconnections += 1
+        else:
+            logger.info("marvelmind: streaming from %s", path)
+        self._outage_since = None
+        self._device = path
+        self._state = LinkState.STREAMING

@@ -1,0 +1,81 @@
+"""Bookkeeping of a pigpio notification stream: lost reports from sequence numbers, 32-bit ticks unwrapped and
+mapped onto the daemon's monotonic clock (numpy over whole batches, no I/O).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+
+class SequenceGaps:
+    """Counts reports missing from a stream whose 16-bit sequence numbers should rise by one each report."""
+
+    def __init__(self, first_seq: int | None = 0) -> None:
+        # pigpiod numbers a handle's reports from 0; None takes whatever comes first (a stream joined midway).
+        self._next: int | None = first_seq
+        self.lost = 0
+
+    def check(self, seq: npt.NDArray[np.uint16]) -> int:
+        """Account for a batch of sequence numbers; returns how many reports are missing in or before it."""
+        if not len(seq):
+            return 0
+        expected = np.empty(len(seq), dtype=np.uint16)
+        expected[0] = seq[0] if self._next is None else self._next
+        expected[1:] = seq[:-1] + np.uint16(1)
+        # A gap of k reports shows as seq - expected = k (mod 2^16); a burst of 65536 is indistinguishable from none.
+        missing = int(((seq - expected) & np.uint16(0xFFFF)).astype(np.int64).sum())
+        self._next = (int(seq[-1]) + 1) & 0xFFFF
+        self.lost += missing
+        return missing
+
+    def restart(self) -> None:
+        """A new handle starts its own sequence at 0."""
+        self._next = 0
+
+
+class TickClock:
+    """Unwraps pigpio's 32-bit microsecond ticks and maps them onto the monotonic clock.
+
+    The map is anchored on a (tick, monotonic time) pair measured by asking pigpiod for its tick; `anchor()` may be
+    called again to follow drift between the two clocks.
+    """
+
+    def __init__(self, tick: int, monotonic_s: float) -> None:
+        self._last_tick = tick & 0xFFFFFFFF
+        self._last_unwrapped = 0
+        self._anchor_unwrapped = 0
+        self._anchor_s = monotonic_s
+
+    def unwrap(self, ticks: npt.NDArray[np.uint32]) -> npt.NDArray[np.int64]:
+        """Ticks on one unbounded time line (microseconds since the first anchor).
+
+        Each step is read as a signed 32-bit difference, so wrap-arounds and small backward steps both come out
+        right, as long as consecutive ticks are less than 35 minutes apart.
+        """
+        if not len(ticks):
+            return np.zeros(0, dtype=np.int64)
+        steps = np.empty(len(ticks), dtype=np.int64)
+        steps[0] = np.array([int(ticks[0]) - self._last_tick], dtype=np.int64).astype(np.int32)[0]
+        steps[1:] = (ticks[1:] - ticks[:-1]).view(np.int32)
+        unwrapped = self._last_unwrapped + np.cumsum(steps)
+        self._last_tick = int(ticks[-1])
+        self._last_unwrapped = int(unwrapped[-1])
+        return unwrapped
+
+    def unwrap_one(self, tick: int) -> int:
+        """One tick on the unwrapped time line (advances the unwrapper like a report would)."""
+        return int(self.unwrap(np.array([tick & 0xFFFFFFFF], dtype=np.uint32))[0])
+
+    def anchor(self, tick: int, monotonic_s: float) -> None:
+        """Re-anchor: `tick` was read at `monotonic_s`."""
+        self._anchor_unwrapped = self.unwrap_one(tick)
+        self._anchor_s = monotonic_s
+
+    def to_monotonic(self, unwrapped_us: int) -> float:
+        """The monotonic time of an unwrapped tick."""
+        return self._anchor_s + (unwrapped_us - self._anchor_unwrapped) * 1e-6
+
+    def to_unwrapped(self, monotonic_s: float) -> int:
+        """The unwrapped tick of a monotonic time."""
+        return self._anchor_unwrapped + round((monotonic_s - self._anchor_s) * 1e6)

@@ -1,0 +1,197 @@
+"""`robotd vhw` end to end: the daemon's own drivers and control law drive the virtual robot in real time.
+
+One run of a few seconds, shared by the tests of this module: `robotd vhw` in a subprocess; in this process the
+daemon's parts (the encoder source on pigpiod's notification socket, the L298 outputs through gpiozero, the
+`MotionController`, a Marvelmind parser on the serial port opened with pyserial-asyncio-fast) drive a short scenario.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import os
+import signal
+import socket
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+import serial_asyncio_fast
+import yaml
+from sim_support import REPO
+
+from drivers.encoders import PigpioEncoders, WheelTicks
+from drivers.marvelmind.events import FixUnavailable, Position
+from drivers.marvelmind.protocol import MarvelmindParser
+from drivers.motors import GpiozeroMotors
+from drivers.sim.offline import run
+from drivers.sim.scenarios import Scenario, Segment
+from drivers.sim.world import geometry_of
+from robotd.config import RobotdConfig, load
+from robotd.control import MotionController
+from robotd.kinematics import Twist
+from robotd.logfile import IpsFix, IpsLost, Truth, Wheels, read_log
+
+SCENARIO = Scenario("live", (Segment(0.3), Segment(2.0, vx=0.3, vy=0.1, wz=0.4), Segment(1.2)))
+SEED = 4
+
+
+@dataclass
+class LiveRun:
+    """What the daemon's drivers saw, and what the simulator recorded."""
+
+    config: RobotdConfig
+    record: Path
+    scenario_start: float = 0.0
+    final_ticks: tuple[int, ...] = ()
+    illegal: tuple[int, ...] = ()
+    lost_reports: int = 0
+    fixes: list[Position | FixUnavailable] = field(default_factory=list)
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port: int = probe.getsockname()[1]
+        return port
+
+
+def _write_config(tmp: Path) -> Path:
+    raw = yaml.safe_load((REPO / "config" / "sim.yaml").read_text())
+    raw.setdefault("pigpiod", {})["port"] = _free_port()
+    raw.setdefault("marvelmind", {})["device"] = str(tmp / "marvelmind")
+    raw.setdefault("pose_socket", {})["path"] = str(tmp / "pose.sock")
+    # The rear-right wheel is wired backwards, encoder and motor both: the daemon's signs must undo it.
+    encoders = raw.setdefault("encoders", {}).setdefault("wheels", {})
+    encoders["rear_right"] = {"a": 2, "b": 3, "sign": -1}
+    motors = raw.setdefault("motors", {}).setdefault("wheels", {})
+    motors["rear_right"] = {"enable": 19, "in1": 25, "in2": 11, "sign": -1}
+    path = tmp / "sim.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+async def _drive(live: LiveRun) -> None:
+    """The daemon's side: encoders, control law and motors through the scenario, and the Marvelmind port."""
+    config = live.config
+    latest: list[WheelTicks] = []
+    encoders = PigpioEncoders(config.encoders, config.pigpiod)
+    parser = MarvelmindParser()
+    loop = asyncio.get_running_loop()
+    async with asyncio.TaskGroup() as tasks:
+        encoder_task = tasks.create_task(encoders.run(latest.append))
+        reader, writer = await serial_asyncio_fast.open_serial_connection(url=config.marvelmind.device)
+
+        async def read_fixes() -> None:
+            while data := await reader.read(4096):
+                events = parser.feed(data, loop.time())
+                live.fixes += [e for e in events if isinstance(e, Position | FixUnavailable)]
+
+        fix_task = tasks.create_task(read_fixes())
+        motors = await asyncio.to_thread(GpiozeroMotors, config.motors, config.pigpiod)
+        controller = MotionController(geometry_of(config), config.control, config.teleop, config.motors.duty_limit)
+        try:
+            while not latest:
+                await asyncio.sleep(0.01)
+            start = live.scenario_start = loop.time()
+            command, command_time = Twist(0.0, 0.0, 0.0), start
+            next_command = start
+            now = start
+            while now < start + SCENARIO.duration_s:
+                if now >= next_command:  # the remote control's 10 Hz
+                    command, command_time = Twist(*SCENARIO.command_at(now - start)), now
+                    next_command += 1.0 / config.sim.teleop_rate_hz
+                motors.set_duties(controller.step(now, command, command_time, latest[-1].speeds_rad_s))
+                await asyncio.sleep(1.0 / config.control.rate_hz)
+                now = loop.time()
+        finally:
+            motors.close()
+        await asyncio.sleep(0.6)  # the robot coasts to rest and its last edges arrive
+        count = len(live.fixes)
+        while len(live.fixes) == count:  # close the port just after a frame: nothing is in flight
+            await asyncio.sleep(0.002)
+        writer.close()
+        fix_task.cancel()
+        live.final_ticks = encoders.ticks
+        live.illegal = encoders.counters.illegal_transitions
+        live.lost_reports = encoders.counters.lost_reports
+        encoder_task.cancel()
+
+
+@pytest.fixture(scope="module")
+def live_run(tmp_path_factory: pytest.TempPathFactory) -> LiveRun:
+    tmp = tmp_path_factory.mktemp("vhw")
+    config_path = _write_config(tmp)
+    live = LiveRun(load(config_path), tmp / "vhw.jsonl")
+
+    async def main() -> None:
+        vhw = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "robotd", "vhw", "--config", str(config_path), "--seed", str(SEED),
+            "--record", str(live.record), stdout=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        assert vhw.stdout is not None
+        try:
+            while b"running" not in await asyncio.wait_for(vhw.stdout.readline(), 20.0):
+                pass
+            await _drive(live)
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                vhw.send_signal(signal.SIGTERM)
+            await asyncio.wait_for(vhw.communicate(), 10.0)
+        assert vhw.returncode == 0
+
+    asyncio.run(main())
+    return live
+
+
+@pytest.mark.slow
+def test_vhw_prints_its_endpoints_and_links_the_serial_device(live_run: LiveRun) -> None:
+    assert not os.path.lexists(live_run.config.marvelmind.device)  # removed when vhw stopped
+    assert read_log(live_run.record).meta.source.startswith("robotd vhw")
+
+
+@pytest.mark.slow
+def test_the_daemons_encoder_driver_sees_exactly_the_simulators_ticks(live_run: LiveRun) -> None:
+    log = read_log(live_run.record)
+    last = [e for e in log.events if isinstance(e, Wheels)][-1]
+    assert live_run.illegal == (0, 0, 0, 0)
+    assert live_run.lost_reports == 0
+    assert min(abs(n) for n in last.ticks) > 1000  # every wheel turned, the reversed one too
+    assert live_run.final_ticks == last.ticks
+
+
+@pytest.mark.slow
+def test_the_daemons_marvelmind_parser_sees_exactly_the_simulators_fixes(live_run: LiveRun) -> None:
+    log = read_log(live_run.record)
+    written = [e for e in log.events if isinstance(e, IpsFix | IpsLost)]
+    assert len(written) > 20
+    assert len(live_run.fixes) == len(written)
+    for seen, sent in zip(live_run.fixes, written, strict=True):
+        if isinstance(sent, IpsLost):
+            assert isinstance(seen, FixUnavailable)
+            continue
+        assert isinstance(seen, Position)
+        assert (seen.x, seen.y, seen.z) == (sent.x, sent.y, sent.z)
+        assert seen.time_shift_s == pytest.approx(sent.t - sent.t_meas, abs=1e-9)
+
+
+@pytest.mark.slow
+def test_offline_and_live_runs_of_the_same_scenario_and_seed_agree(live_run: LiveRun) -> None:
+    live_truth = [e for e in read_log(live_run.record).events if isinstance(e, Truth)]
+    offline_truth = [e for e in run(live_run.config, SCENARIO, SEED) if isinstance(e, Truth)]
+    offline_at = {round(e.t * 100): e for e in offline_truth}
+    gaps = []
+    for e in live_truth:
+        t = e.t - live_run.scenario_start
+        if 0.0 <= t <= SCENARIO.duration_s and round(t * 100) in offline_at:
+            o = offline_at[round(t * 100)]
+            gaps.append(math.hypot(e.x - o.x, e.y - o.y))
+    assert len(gaps) > 200
+    final_live, final_offline = live_truth[-1], offline_truth[-1]
+    assert math.hypot(final_offline.x, final_offline.y) > 0.5  # the robot went somewhere
+    # Live timing jitter (the control loop's sleeps, one 5 ms step of duty latency) shifts the path by millimetres.
+    assert max(gaps) < 0.02
+    assert math.hypot(final_live.x - final_offline.x, final_live.y - final_offline.y) < 0.02
+    assert final_live.theta == pytest.approx(final_offline.theta, abs=0.02)

@@ -1,0 +1,140 @@
+"""L298 motor outputs through gpiozero on the virtual pigpiod; zeroed on raise, SIGTERM and by stop-motors."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from wheels_support import wait_until
+
+from drivers.motors import GpiozeroMotors, command_duty, stop_all_motors, wheel_pins
+from drivers.pigpio_link import PigpiodUnavailableError
+from drivers.pigpio_protocol import Mode
+from drivers.sim.vpigpiod import VirtualPigpiod
+from robotd.cli import main
+from robotd.config import MotorsConfig, PigpiodConfig
+
+REPO = Path(__file__).resolve().parents[3]
+SPIN_ARGS = ["--duty", "0.5", "-0.3", "0.2", "0.9", "--seconds", "60"]
+
+
+@pytest.fixture
+def server() -> Iterator[VirtualPigpiod]:
+    with VirtualPigpiod() as running:
+        yield running
+
+
+def outputs(server: VirtualPigpiod, motors: MotorsConfig) -> list[tuple[float, int, int]]:
+    """(enable duty, IN1, IN2) per wheel as the virtual pigpiod holds them."""
+    return [(server.pwm_duty(p.enable), server.level(p.in1), server.level(p.in2)) for p in wheel_pins(motors)]
+
+
+def test_duties_set_direction_pins_and_enable_pwm(server: VirtualPigpiod) -> None:
+    motors = MotorsConfig()
+    with GpiozeroMotors(motors, PigpiodConfig(port=server.port)) as outputs_:
+        assert outputs(server, motors) == [(0.0, 0, 0)] * 4  # zero from the start
+        outputs_.set_duties((0.5, -0.25, 0.0, 1.0))
+        assert outputs(server, motors) == [(0.5, 1, 0), (0.25, 0, 1), (0.0, 0, 0), (1.0, 1, 0)]
+        outputs_.set_duties((-0.5, -0.25, 0.1, 0.0))  # a reversal, an unchanged wheel, a start, a stop
+        assert outputs(server, motors) == [(0.5, 0, 1), (0.25, 0, 1), (0.1, 1, 0), (0.0, 0, 0)]
+        assert server.pwm_frequency(motors.wheels.front_left.enable) == motors.pwm_frequency_hz
+
+
+def test_limit_and_wheel_sign_are_applied(server: VirtualPigpiod) -> None:
+    motors = replace(MotorsConfig(), duty_limit=0.6)
+    wheels = replace(motors.wheels, front_right=replace(motors.wheels.front_right, sign=-1))
+    motors = replace(motors, wheels=wheels)
+    with GpiozeroMotors(motors, PigpiodConfig(port=server.port)) as outputs_:
+        outputs_.set_duties((0.9, 0.3, -2.0, float("nan")))
+        assert outputs(server, motors) == [(0.6, 1, 0), (0.3, 0, 1), (0.6, 0, 1), (0.0, 0, 0)]
+    assert command_duty(0.3, -1, 1.0) == -0.3
+
+
+def test_motors_are_zeroed_when_the_program_raises(server: VirtualPigpiod) -> None:
+    motors = MotorsConfig()
+
+    def control_loop_that_fails() -> None:
+        with GpiozeroMotors(motors, PigpiodConfig(port=server.port)) as running:
+            running.set_duties((0.7, 0.7, -0.7, -0.7))
+            assert server.pwm_duty(motors.wheels.front_left.enable) == pytest.approx(0.7)
+            raise RuntimeError("control loop failed")
+
+    with pytest.raises(RuntimeError, match="control loop failed"):
+        control_loop_that_fails()
+    assert [duty for duty, _, _ in outputs(server, motors)] == [0.0] * 4
+
+
+def test_stop_all_motors_leaves_every_motor_pin_an_output_driven_low(server: VirtualPigpiod) -> None:
+    motors = MotorsConfig()
+    pigpiod = PigpiodConfig(port=server.port)
+    outputs_ = GpiozeroMotors(motors, pigpiod)
+    outputs_.set_duties((0.4, 0.4, 0.4, 0.4))
+    stop_all_motors(motors, pigpiod)  # as ExecStopPost would, while the crashed owner still holds the pins
+    assert outputs(server, motors) == [(0.0, 0, 0)] * 4
+    assert {server.mode(p.enable) for p in wheel_pins(motors)} == {Mode.OUTPUT}
+    outputs_.close()
+
+
+def test_unreachable_pigpiod_is_a_clear_error_and_exit_69(tmp_path: Path) -> None:
+    with socket.socket() as placeholder:
+        placeholder.bind(("127.0.0.1", 0))
+        port = placeholder.getsockname()[1]
+        with pytest.raises(PigpiodUnavailableError, match="not reachable"):
+            stop_all_motors(MotorsConfig(), PigpiodConfig(port=port, connect_timeout_s=0.5))
+        config = tmp_path / "robot.yaml"
+        config.write_text(f"pigpiod:\n  port: {port}\n")
+        assert main(["stop-motors", "--config", str(config)]) == 69
+
+
+def _spin_wheels(config: Path) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "robotd", "spin-wheels", "--config", str(config), *SPIN_ARGS],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def test_sigterm_to_a_process_driving_the_motors_leaves_them_at_zero(server: VirtualPigpiod, tmp_path: Path) -> None:
+    motors = MotorsConfig()
+    config = tmp_path / "robot.yaml"
+    config.write_text(f"pigpiod:\n  port: {server.port}\n")
+    process = _spin_wheels(config)
+    try:
+        wait_until(lambda: server.pwm_duty(motors.wheels.rear_right.enable) > 0.8 or process.poll() is not None, 20)
+        assert outputs(server, motors) == [(0.5, 1, 0), (0.3, 0, 1), (0.2, 1, 0), (0.9, 1, 0)]
+        process.send_signal(signal.SIGTERM)
+        _, stderr = process.communicate(timeout=20)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 128 + signal.SIGTERM, stderr
+    assert [duty for duty, _, _ in outputs(server, motors)] == [0.0] * 4
+
+
+def test_after_a_kill_stop_motors_zeroes_what_the_dead_process_left(server: VirtualPigpiod, tmp_path: Path) -> None:
+    motors = MotorsConfig()
+    config = tmp_path / "robot.yaml"
+    config.write_text(f"pigpiod:\n  port: {server.port}\n")
+    process = _spin_wheels(config)
+    try:
+        wait_until(lambda: server.pwm_duty(motors.wheels.rear_right.enable) > 0.8 or process.poll() is not None, 20)
+        process.kill()  # SIGKILL: no handler runs, the outputs stay as they were
+        process.communicate(timeout=20)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert server.pwm_duty(motors.wheels.front_left.enable) == pytest.approx(0.5)
+    assert main(["stop-motors", "--config", str(config)]) == 0
+    assert outputs(server, motors) == [(0.0, 0, 0)] * 4

@@ -1,0 +1,152 @@
+"""The EKF's maths: step by step equal to FilterPy's ExtendedKalmanFilter, covariance symmetric positive definite."""
+
+from __future__ import annotations
+
+import math
+import random
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from robotd import ekf, kinematics
+
+
+class _ModelEKF(ExtendedKalmanFilter):  # type: ignore[misc]
+    """FilterPy's EKF with the paper's nonlinear process model (eq. 5) in place of its linear x = F x + B u."""
+
+    x: np.ndarray
+
+    def __init__(self) -> None:
+        super().__init__(dim_x=3, dim_z=2)
+        self.u = (0.0, 0.0, 0.0, 0.0)
+
+    def predict_x(self, u: object = 0) -> None:
+        vx, vy, wz, dt = self.u
+        x, y, th = (float(v) for v in self.x.ravel())
+        c, s = math.cos(th), math.sin(th)
+        self.x = np.array([[x + (vx * c - vy * s) * dt], [y + (vx * s + vy * c) * dt], [th + wz * dt]])
+
+
+def _random_cov(rng: random.Random) -> ekf.Cov:
+    a = np.array([[rng.gauss(0, 0.5) for _ in range(3)] for _ in range(3)])
+    m = a @ a.T + np.diag([1e-4, 1e-4, 1e-5])
+    return (m[0, 0], m[0, 1], m[0, 2], m[1, 1], m[1, 2], m[2, 2])
+
+
+def _full(p: ekf.Cov) -> np.ndarray:
+    return np.array(ekf.cov_full(p)).reshape(3, 3)
+
+
+def test_predict_and_update_equal_filterpy_step_by_step() -> None:
+    rng = random.Random(7)
+    x, y, th = 0.3, -0.2, 0.4
+    p = _random_cov(rng)
+    ref = _ModelEKF()
+    noise = ekf.ControlNoise(lin2=4e-4, lat2=9e-4, slip2=2.5e-3, turn2=2.5e-3, rel2=0.01)
+    for step in range(3000):
+        if step % 200 == 0:  # start again from a random state so that every part of the state space is visited
+            x, y, th, p = rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-3, 3), _random_cov(rng)
+        ref.x = np.array([[x], [y], [th]])
+        ref.P = _full(p)
+        vx, vy, wz, dt = rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-2, 2), rng.uniform(0.001, 0.2)
+        q = ekf.process_noise(th, vx, vy, wz, dt, noise)
+        c, s = math.cos(th), math.sin(th)
+        ref.F = np.array([[1, 0, -(vx * s + vy * c) * dt], [0, 1, (vx * c - vy * s) * dt], [0, 0, 1]])
+        ref.Q = _full(q)
+        ref.u = (vx, vy, wz, dt)
+        ref.predict()
+        x, y, th, p = ekf.predict(x, y, th, p, vx, vy, wz, dt, q)
+        assert np.allclose([x, y], ref.x.ravel()[:2], rtol=0, atol=1e-9)
+        assert abs(ekf.wrap_angle(th - float(ref.x[2, 0]))) < 1e-9
+        assert np.allclose(_full(p), ref.P, rtol=0, atol=1e-9)
+        ox, oy = rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2)
+        r = rng.uniform(0.0005, 0.05)
+        zx, zy = x + rng.gauss(0, 0.3), y + rng.gauss(0, 0.3)
+
+        def hx(state: np.ndarray, ox: float = ox, oy: float = oy) -> np.ndarray:
+            t = float(state[2, 0])
+            return np.array(
+                [
+                    [state[0, 0] + ox * math.cos(t) - oy * math.sin(t)],
+                    [state[1, 0] + ox * math.sin(t) + oy * math.cos(t)],
+                ]
+            )
+
+        def jacobian(state: np.ndarray, ox: float = ox, oy: float = oy) -> np.ndarray:
+            t = float(state[2, 0])
+            return np.array([[1, 0, -ox * math.sin(t) - oy * math.cos(t)], [0, 1, ox * math.cos(t) - oy * math.sin(t)]])
+
+        ref.x = np.array([[x], [y], [th]])
+        ref.R = np.eye(2) * r
+        ref.update(np.array([[zx], [zy]]), jacobian, hx)
+        inn = ekf.innovation(x, y, th, p, zx, zy, r, ox, oy)
+        assert np.allclose([inn.nu_x, inn.nu_y], ref.y.ravel(), rtol=0, atol=1e-9)
+        assert np.allclose([[inn.s_xx, inn.s_xy], [inn.s_xy, inn.s_yy]], ref.S, rtol=0, atol=1e-9)
+        x, y, th, p = ekf.update(x, y, th, p, inn, r)
+        assert np.allclose([x, y], ref.x.ravel()[:2], rtol=0, atol=1e-9)
+        assert abs(ekf.wrap_angle(th - float(ref.x[2, 0]))) < 1e-9
+        assert np.allclose(_full(p), ref.P, rtol=0, atol=1e-9)
+
+
+def test_nis_is_the_mahalanobis_distance() -> None:
+    p = (0.04, 0.01, 0.0, 0.09, 0.0, 0.01)
+    inn = ekf.innovation(0.0, 0.0, 0.0, p, 0.3, -0.2, 0.01, 0.0, 0.0)
+    s = np.array([[inn.s_xx, inn.s_xy], [inn.s_xy, inn.s_yy]])
+    nu = np.array([0.3, -0.2])
+    assert math.isclose(inn.nis, float(nu @ np.linalg.solve(s, nu)), rel_tol=1e-12)
+
+
+def test_chi2_gate_matches_the_2dof_quantile() -> None:
+    # the 2-dof chi-square CDF is 1 - exp(-d/2): its 99.9 % quantile is 13.8155
+    assert math.isclose(ekf.chi2_gate_2dof(0.999), 13.815510557964274, rel_tol=1e-12)
+    assert math.isclose(1.0 - math.exp(-ekf.chi2_gate_2dof(0.95) / 2.0), 0.95, rel_tol=1e-12)
+
+
+finite = st.floats(-2.0, 2.0, allow_nan=False)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    steps=st.lists(
+        st.tuples(finite, finite, finite, st.floats(0.001, 0.5), st.booleans(), finite, finite, st.floats(1e-4, 1.0)),
+        min_size=1,
+        max_size=40,
+    ),
+    frozen=st.booleans(),
+)
+def test_covariance_stays_symmetric_positive_definite(
+    steps: list[tuple[float, float, float, float, bool, float, float, float]], frozen: bool
+) -> None:
+    x = y = th = 0.0
+    p = ekf.cov_diag(1.0, 1.0, 0.5)
+    noise = ekf.ControlNoise(lin2=4e-4, lat2=9e-4, slip2=2.5e-3, turn2=2.5e-3)
+    for vx, vy, wz, dt, fix, zx, zy, r in steps:
+        x, y, th, p = ekf.predict(x, y, th, p, vx, vy, wz, dt, ekf.process_noise(th, vx, vy, wz, dt, noise))
+        if fix:
+            inn = ekf.innovation(x, y, th, p, zx, zy, r * r, 0.1, -0.05)
+            x, y, th, p = ekf.update(x, y, th, p, inn, r * r, freeze_heading=frozen)
+        eigenvalues = np.linalg.eigvalsh(_full(p))
+        assert eigenvalues.min() > 0.0
+        assert -math.pi <= th < math.pi
+
+
+@given(vx=st.floats(-2, 2), vy=st.floats(-2, 2), wz=st.floats(-5, 5), r=st.floats(0.01, 0.2), half=st.floats(0.05, 0.5))
+def test_inverse_kinematics_round_trips_the_forward_kinematics(
+    vx: float, vy: float, wz: float, r: float, half: float
+) -> None:
+    geometry = kinematics.Geometry(r, half, half * 0.9)
+    twist = kinematics.forward(geometry, kinematics.inverse(geometry, kinematics.Twist(vx, vy, wz)))
+    assert math.isclose(twist.vx, vx, abs_tol=1e-9)
+    assert math.isclose(twist.vy, vy, abs_tol=1e-9)
+    assert math.isclose(twist.wz, wz, abs_tol=1e-9)
+
+
+def test_frozen_heading_leaves_theta_alone() -> None:
+    p = (0.01, 0.0, 0.005, 0.01, 0.002, 0.05)
+    inn = ekf.innovation(0.0, 0.0, 0.3, p, 0.2, 0.1, 0.001, 0.0, 0.0)
+    _, _, th, _ = ekf.update(0.0, 0.0, 0.3, p, inn, 0.001, freeze_heading=True)
+    _, _, th_free, _ = ekf.update(0.0, 0.0, 0.3, p, inn, 0.001)
+    assert math.isclose(th, 0.3, abs_tol=1e-12)
+    assert th_free != 0.3

@@ -1,0 +1,231 @@
+"""The estimator: outliers, lock-out recovery, latency compensation, lever arm, heading, bad input, the paper preset."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import random
+
+from robotd import kinematics
+from robotd.config import EkfConfig
+from robotd.estimator import Estimator, TrackState, Verdict
+
+GEOMETRY = kinematics.Geometry()
+CPR = 6800
+
+
+def _config(**changes: object) -> EkfConfig:
+    return dataclasses.replace(EkfConfig(), **changes)  # type: ignore[arg-type]
+
+
+def _drive(
+    est: Estimator,
+    until: float,
+    twist: tuple[float, float, float],
+    *,
+    start: float = 0.0,
+    true_start: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    fix_hz: float = 8.0,
+    noise: float = 0.0,
+    fix_shift: tuple[float, float] = (0.0, 0.0),
+    offset: tuple[float, float] = (0.0, 0.0),
+    seed: int = 1,
+) -> tuple[float, float, float]:
+    """Drive at a constant twist with fixes of the true beacon position; returns the true pose at `until`."""
+    rng = random.Random(seed)
+    x, y, th = true_start
+    t = start
+    next_fix = start + 1.0 / fix_hz
+    vx, vy, wz = twist
+    while t < until - 1e-9:
+        dt = 0.01
+        mid = th + 0.5 * wz * dt
+        x += (vx * math.cos(mid) - vy * math.sin(mid)) * dt
+        y += (vx * math.sin(mid) + vy * math.cos(mid)) * dt
+        th += wz * dt
+        t += dt
+        est.on_twist(t, vx, vy, wz)
+        if t >= next_fix:
+            bx = x + offset[0] * math.cos(th) - offset[1] * math.sin(th) + fix_shift[0] + rng.gauss(0, noise)
+            by = y + offset[0] * math.sin(th) + offset[1] * math.cos(th) + fix_shift[1] + rng.gauss(0, noise)
+            est.on_fix(t, bx, by, t)
+            next_fix += 1.0 / fix_hz
+    return x, y, th
+
+
+def test_three_metre_jump_in_one_fix_moves_the_estimate_less_than_a_centimetre() -> None:
+    clean = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    hit = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    for est in (clean, hit):
+        _drive(est, 5.0, (0.3, 0.0, 0.0), noise=0.02)
+    diag = hit.on_fix(5.0, 1.5 + 3.0, 0.0, 5.0)
+    assert diag is not None
+    assert diag.verdict is Verdict.GATED
+    assert not diag.accepted
+    for est in (clean, hit):
+        _drive(est, 5.5, (0.3, 0.0, 0.0), start=5.0, true_start=(1.5, 0.0, 0.0), noise=0.02, seed=2)
+    a, b = clean.pose(), hit.pose()
+    assert math.hypot(a.x - b.x, a.y - b.y) < 0.01
+    assert hit.counters["fixes_rejected"] == 1
+
+
+def test_the_paper_filter_has_no_gate() -> None:
+    paper = Estimator.paper_filter(_config(), GEOMETRY, CPR)
+    _drive(paper, 5.0, (0.3, 0.0, 0.0), noise=0.02)
+    before = paper.pose()
+    diag = paper.on_fix(5.0, before.x + 3.0, before.y, 5.0)
+    after = paper.pose()
+    assert diag is not None
+    assert diag.verdict is Verdict.ACCEPTED
+    assert after.x - before.x > 0.05
+
+
+def test_a_carried_robot_is_reacquired_within_two_seconds() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    _drive(est, 4.0, (0.0, 0.0, 0.0), noise=0.03)
+    assert math.hypot(est.pose().x, est.pose().y) < 0.05
+    # carried 2 m: the wheels do not turn, the fixes move
+    _drive(est, 6.0, (0.0, 0.0, 0.0), start=4.0, noise=0.03, fix_shift=(2.0, 0.0), seed=3)
+    pose = est.pose()
+    assert math.hypot(pose.x - 2.0, pose.y) < 0.1
+    assert est.counters["recoveries"] == 1
+
+
+def test_a_consistent_burst_of_outliers_shorter_than_the_recovery_time_is_not_taken() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    _drive(est, 4.0, (0.0, 0.0, 0.0), noise=0.03)
+    _drive(est, 5.0, (0.0, 0.0, 0.0), start=4.0, noise=0.03, fix_shift=(2.0, 0.0), seed=3)  # 1 s of the same lie
+    _drive(est, 7.0, (0.0, 0.0, 0.0), start=5.0, noise=0.03, seed=4)
+    pose = est.pose()
+    assert math.hypot(pose.x, pose.y) < 0.03
+    assert est.counters["recoveries"] == 0
+
+
+def test_scattered_outliers_never_trigger_a_recovery() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    _drive(est, 3.0, (0.0, 0.0, 0.0), noise=0.03)
+    rng = random.Random(5)
+    for i in range(40):  # 5 s of nothing but wild fixes
+        angle = rng.uniform(-math.pi, math.pi)
+        est.on_fix(3.0 + i * 0.125, 2.0 * math.cos(angle), 2.0 * math.sin(angle), 3.0 + i * 0.125)
+    assert est.counters["recoveries"] == 0
+    assert math.hypot(est.pose().x, est.pose().y) < 0.03
+
+
+def _twists_and_fix(est: Estimator, fix_arrival: float) -> None:
+    rng = random.Random(11)
+    twists = [(0.01 * (i + 1), rng.uniform(0, 0.5), rng.uniform(-0.2, 0.2), rng.uniform(-1, 1)) for i in range(200)]
+    fix_sent = False
+    for i, (t, vx, vy, wz) in enumerate(twists):
+        if not fix_sent and t > fix_arrival:
+            est.on_fix(fix_arrival, 0.9, 0.05, 1.0)
+            fix_sent = True
+        est.on_twist(t, vx, vy, wz)
+        if i % 25 == 0 and t < 0.9:
+            est.on_fix(t, 0.25 * t, 0.0, t)
+
+
+def test_a_fix_fused_late_through_the_history_equals_the_same_fix_fused_on_time() -> None:
+    on_time = Estimator(_config(), GEOMETRY, (0.05, 0.02), CPR)
+    late = Estimator(_config(), GEOMETRY, (0.05, 0.02), CPR)
+    _twists_and_fix(on_time, 1.0)
+    _twists_and_fix(late, 1.137)  # arrives 137 ms after it was measured
+    a, b = on_time.pose(), late.pose()
+    assert late.counters["late_fixes"] >= 1
+    assert math.isclose(a.x, b.x, abs_tol=1e-9)
+    assert math.isclose(a.y, b.y, abs_tol=1e-9)
+    assert math.isclose(a.theta, b.theta, abs_tol=1e-9)
+    assert all(math.isclose(u, v, abs_tol=1e-12) for u, v in zip(a.cov, b.cov, strict=True))
+
+
+def _mean_error_on_a_circle_with_late_fixes(compensate: bool) -> float:
+    """Mean position error driving a circle at 0.5 m/s with 8 Hz fixes measured 150 ms before they arrive."""
+    est = Estimator(_config(latency_compensation=compensate), GEOMETRY, (0.0, 0.0), CPR)
+    x = y = th = 0.0
+    history = [(0.0, 0.0, 0.0)]
+    errors = []
+    for step in range(1, 2001):
+        t = 0.01 * step
+        mid = th + 0.25 * 0.01
+        x, y, th = x + 0.5 * math.cos(mid) * 0.01, y + 0.5 * math.sin(mid) * 0.01, th + 0.5 * 0.01
+        history.append((t, x, y))
+        est.on_twist(t, 0.5, 0.0, 0.5 * 1.03)  # the odometry over-reads the turn by 3 %
+        if step % 12 == 0 and step > 15:
+            t_meas, mx, my = history[-16]
+            est.on_fix(t, mx, my, t_meas)
+        if step > 200:
+            pose = est.pose()
+            errors.append(math.hypot(pose.x - x, pose.y - y))
+    return sum(errors) / len(errors)
+
+
+def test_latency_compensation_removes_the_lag_of_late_fixes() -> None:
+    assert _mean_error_on_a_circle_with_late_fixes(True) < 0.5 * _mean_error_on_a_circle_with_late_fixes(False)
+
+
+def test_the_lever_arm_keeps_a_robot_turning_in_place_at_its_centre() -> None:
+    offset = (0.2, 0.0)
+    est = Estimator(_config(), GEOMETRY, offset, CPR)
+    naive = Estimator(_config(lever_arm=False), GEOMETRY, offset, CPR)
+    for e in (est, naive):
+        _drive(e, 10.0, (0.0, 0.0, 0.8), offset=offset, noise=0.01)
+    assert math.hypot(est.pose().x, est.pose().y) < 0.03
+    assert math.hypot(naive.pose().x, naive.pose().y) > 0.1
+
+
+def test_an_unknown_initial_heading_is_acquired_by_driving() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)  # believes theta = 0 +- 0.1
+    x, y, th = _drive(est, 6.0, (0.3, 0.0, 0.0), true_start=(1.0, 2.0, 2.0), noise=0.03)
+    pose = est.pose()
+    assert est.counters["heading_realigned"] >= 1
+    assert abs(math.remainder(pose.theta - th, 2 * math.pi)) < 0.1
+    assert math.hypot(pose.x - x, pose.y - y) < 0.08
+
+
+def test_the_first_fixes_seed_the_position_even_if_the_first_is_an_outlier() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    est.on_twist(0.0, 0.0, 0.0, 0.0)
+    assert est.pose().state is TrackState.INITIALISING
+    assert est.on_fix(0.1, 3.5, 3.0, 0.1).verdict is Verdict.SEEDING  # type: ignore[union-attr]
+    _drive(est, 2.0, (0.0, 0.0, 0.0), true_start=(1.0, 1.0, 0.0), noise=0.02)
+    pose = est.pose()
+    assert pose.state is TrackState.TRACKING
+    assert math.hypot(pose.x - 1.0, pose.y - 1.0) < 0.03
+    assert est.counters["fixes_seeded"] == 1
+
+
+def test_non_finite_and_out_of_order_inputs_are_dropped_and_counted() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    est.on_wheels(1.0, (0, 0, 0, 0))
+    est.on_wheels(1.1, (100, 100, 100, 100))
+    est.on_wheels(1.05, (0, 0, 0, 0))  # out of order
+    est.on_wheels(math.nan, (0, 0, 0, 0))
+    est.on_twist(1.2, math.inf, 0.0, 0.0)
+    assert est.on_fix(1.2, math.nan, 0.0, 1.2) is None
+    est.on_fix_lost(1.3)
+    pose = est.pose()
+    assert all(math.isfinite(v) for v in (pose.x, pose.y, pose.theta, *pose.cov))
+    assert est.counters["dropped_out_of_order"] == 1
+    assert est.counters["dropped_non_finite"] == 3
+    assert est.counters["fixes_lost"] == 1
+
+
+def test_wheel_ticks_become_motion_with_the_configured_counts_per_turn() -> None:
+    est = Estimator(_config(predict_period_s=0.0), GEOMETRY, (0.0, 0.0), CPR)
+    est.on_wheels(0.0, (0, 0, 0, 0))
+    # one full turn of every wheel forward: 2 pi r straight ahead
+    est.on_wheels(1.0, (CPR, CPR, CPR, CPR))
+    pose = est.pose()
+    assert math.isclose(pose.x, 2 * math.pi * GEOMETRY.wheel_radius_m, rel_tol=1e-12)
+    assert math.isclose(pose.vx, 2 * math.pi * GEOMETRY.wheel_radius_m, rel_tol=1e-12)
+
+
+def test_a_robot_at_rest_does_not_grow_uncertain() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    est.on_twist(0.0, 0.0, 0.0, 0.0)
+    before = est.pose().cov
+    est.on_twist(100.0, 0.0, 0.0, 0.0)
+    assert est.pose().cov == before
+    est.on_twist(101.0, 0.5, 0.0, 0.0)
+    est.on_twist(102.0, 0.5, 0.0, 0.0)
+    assert est.pose().cov[8] > before[8]  # heading uncertainty grows with distance (slip)
