@@ -105,15 +105,18 @@ class QuadratureDecoder:
         self.illegal += np.count_nonzero((previous ^ states) == 3, axis=1)
         steps = np.take(self._table, (previous << np.uint8(2)) | states)
         moved = steps != 0
-        last = len(levels) - 1
-        for wheel in np.flatnonzero(moved.any(axis=1)):
-            row, sign = steps[wheel], int(self._sign[wheel])
-            if self._first_edge_us[wheel] < 0:
-                first = int(np.argmax(moved[wheel]))
-                self._first_edge_us[wheel] = ticks_us[first]
-                self._first_edge_count[wheel] = self.counts[wheel] + sign * int(row[first])
-            self.last_edge_us[wheel] = ticks_us[last - int(np.argmax(moved[wheel, ::-1]))]
-            self.counts[wheel] += sign * int(row.sum(dtype=np.int64))
+        edged = moved.any(axis=1)
+        if not edged.any():
+            return
+        last = len(levels) - 1 - np.argmax(moved[:, ::-1], axis=1)
+        fresh = edged & (self._first_edge_us < 0)
+        if fresh.any():
+            first = np.argmax(moved, axis=1)
+            for wheel in np.flatnonzero(fresh):
+                self._first_edge_us[wheel] = ticks_us[first[wheel]]
+                self._first_edge_count[wheel] = self.counts[wheel] + self._sign[wheel] * steps[wheel, first[wheel]]
+        self.last_edge_us[edged] = ticks_us[last[edged]]
+        self.counts += self._sign * steps.sum(axis=1, dtype=np.int64)
 
     def take_first_edges(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
         """Tick and count of each encoder's first edge since the last call (tick -1: none), then forget them."""
