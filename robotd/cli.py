@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "robotd.commands.wheels",
     "robotd.commands.sim",
     "robotd.commands.replay",
+    "robotd.commands.run",
 )
 
 

@@ -1,0 +1,36 @@
+"""`robotd run`: the daemon, as systemd starts it on the Pi."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from robotd.config import load
+
+DEFAULT_CONFIG = "/etc/robotd/robot.yaml"
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add `robotd run`."""
+    run = subparsers.add_parser("run", help="run the daemon: odometry + IPS fusion, teleop, pose socket")
+    run.add_argument("--config", default=DEFAULT_CONFIG, help=f"configuration file (default {DEFAULT_CONFIG})")
+    run.add_argument("--record", metavar="LOG.jsonl", help="write every sensor event to this sensor log")
+    run.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    run.set_defaults(handler=run_daemon_command)
+
+
+def configure_logging(verbose: bool) -> None:
+    """Log to stderr, one line a message (journald adds the time stamps)."""
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO, format="%(name)s: %(levelname)s: %(message)s", force=True
+    )
+
+
+def run_daemon_command(args: argparse.Namespace) -> int:
+    """Validate the configuration (exit 78 when bad), then run the daemon until stopped."""
+    from robotd.daemon import run_daemon  # noqa: PLC0415 - keeps `robotd --help` fast
+
+    config = load(args.config)
+    configure_logging(args.verbose)
+    return run_daemon(config, Path(args.record) if args.record else None)

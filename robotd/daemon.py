@@ -1,0 +1,371 @@
+"""The daemon: one asyncio TaskGroup owning every long-lived task, motors zeroed on every way out.
+
+Theory of operation. Producers call back into the daemon from the loop (no threads): the encoder source hands
+`WheelTicks` at its publish rate (-> estimator prediction, wheel speeds for the control loop, the sensor log), the
+Marvelmind reader hands parser events (-> estimator update, and a pose published at once so a fix reaches the pose
+socket without waiting for the next period), and the teleop socket hands validated commands (-> the control loop is
+woken at once, so a command reaches the motors without waiting for the next period). The control loop steps the
+`MotionController` at `control.rate_hz` and writes the duties; the pose task publishes at `pose_socket.rate_hz` and
+a status at 1 Hz; the health task pings systemd's watchdog only while the control loop and the filter keep ticking.
+
+Exit paths: SIGTERM or SIGINT ends the TaskGroup and `run()` returns 0; an exception in any task cancels the
+others and `run()` returns 1 (systemd restarts the service). Either way the motors are zeroed before anything else
+is torn down. A pigpiod that goes away is re-connected with backoff; the motors are driven again only after a
+command that arrived after the reconnection.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import signal
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from drivers.encoders import EncoderSource, PigpioEncoders, WheelTicks
+from drivers.marvelmind.events import Event as MarvelmindEvent
+from drivers.marvelmind.events import FixUnavailable, Position
+from drivers.marvelmind.reader import MarvelmindReader
+from drivers.motors import GpiozeroMotors, MotorOutputs
+from robotd import logfile, posesock
+from robotd.config import RobotdConfig
+from robotd.control import MotionController
+from robotd.estimator import Estimator
+from robotd.kinematics import Geometry, Twist
+from robotd.sdnotify import Notifier
+from robotd.teleop import StopCommand, TeleopCommand, TeleopMessage, open_teleop, receiver_from_config
+
+log = logging.getLogger("robotd")
+
+ZERO = (0.0, 0.0, 0.0, 0.0)
+STATUS_PERIOD_S = 1.0
+
+
+class _Shutdown(Exception):  # noqa: N818 - a signal, not an error
+    """Raised inside the TaskGroup to end it after SIGTERM or SIGINT."""
+
+
+@dataclass(slots=True)
+class _Liveness:
+    """When each vital loop last made progress (monotonic seconds)."""
+
+    control: float = -math.inf
+    filter: float = -math.inf
+
+
+@dataclass(slots=True)
+class _Teleop:
+    """The latest valid command and when it arrived."""
+
+    twist: Twist | None = None
+    received_at: float | None = None
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+
+
+MotorsFactory = Callable[[], MotorOutputs]
+
+
+class Daemon:
+    """robotd's process: wires drivers, estimator, control, teleop and pose socket into one TaskGroup."""
+
+    def __init__(
+        self,
+        config: RobotdConfig,
+        *,
+        record: TextIO | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        encoders: EncoderSource | None = None,
+        motors_factory: MotorsFactory | None = None,
+    ) -> None:
+        self.config = config
+        self.clock = clock
+        robot = config.robot
+        self.geometry = Geometry(robot.wheel_radius_m, robot.lx_m, robot.ly_m)
+        self.estimator = Estimator(config.ekf, self.geometry, robot.ips_offset_m, config.encoders.counts_per_rev)
+        self.controller = MotionController(
+            self.geometry, config.control, config.teleop, duty_limit=config.motors.duty_limit
+        )
+        self.encoders = encoders if encoders is not None else PigpioEncoders(config.encoders, config.pigpiod, clock)
+        self._motors_factory = motors_factory or (lambda: GpiozeroMotors(config.motors, config.pigpiod))
+        self.motors: MotorOutputs | None = None
+        self.marvelmind = MarvelmindReader(config.marvelmind, self._on_marvelmind, clock)
+        self.teleop_receiver = receiver_from_config(config.teleop)
+        self.notifier = Notifier()
+        self.pose_server = posesock.PoseServer(
+            config.pose_socket.path,
+            int(config.pose_socket.mode, 8),
+            hello=posesock.hello_message(config.pose_socket.rate_hz, 1.0 / STATUS_PERIOD_S),
+        )
+        self._teleop = _Teleop()
+        self._alive = _Liveness()
+        self._wheel_speeds: tuple[float, float, float, float] = ZERO
+        self._odometry_state = "waiting"
+        self._motors_ready_after = -math.inf
+        self._motors_lost = asyncio.Event()
+        self._counters: dict[str, int] = {"control_steps": 0, "motor_failures": 0, "teleop_commands": 0}
+        self._recorder = self._open_recorder(record)
+
+    # --- producers' callbacks (on the loop) -----------------------------------------------------------------
+
+    def _on_ticks(self, ticks: WheelTicks) -> None:
+        self.estimator.on_wheels(ticks.t, ticks.ticks)
+        self._wheel_speeds = ticks.speeds_rad_s
+        self._odometry_state = "degraded" if ticks.degraded else "ok"
+        self._alive.filter = self.clock()
+        if self._recorder is not None:
+            self._recorder.write(logfile.Wheels(ticks.t, ticks.ticks))
+
+    def _on_marvelmind(self, event: MarvelmindEvent) -> None:
+        if isinstance(event, Position):
+            self.estimator.on_fix(event.arrival, event.x, event.y, event.t_meas)
+            if self._recorder is not None:
+                self._recorder.write(logfile.IpsFix(event.arrival, event.x, event.y, event.z, event.t_meas))
+            self._publish_pose()  # a fix reaches the pose socket now, not at the next period
+        elif isinstance(event, FixUnavailable):
+            self.estimator.on_fix_lost(event.arrival)
+            if self._recorder is not None:
+                self._recorder.write(logfile.IpsLost(event.arrival))
+
+    def _on_teleop(self, message: TeleopMessage) -> None:
+        teleop = self._teleop
+        if isinstance(message, StopCommand):
+            teleop.twist, teleop.received_at = None, None  # an explicit stop: motors off at once, no ramp
+            twist = Twist(0.0, 0.0, 0.0)
+        else:
+            assert isinstance(message, TeleopCommand)
+            teleop.twist, teleop.received_at = message.twist, message.received_at
+            twist = message.twist
+            self._counters["teleop_commands"] += 1
+        if self._recorder is not None:
+            self._recorder.write(logfile.Command(message.received_at, twist.vx, twist.vy, twist.wz))
+        teleop.wake.set()
+
+    # --- tasks --------------------------------------------------------------------------------------------------
+
+    async def run(self) -> int:
+        """Run until SIGTERM/SIGINT (returns 0) or a failure (returns 1); the motors are zeroed on every way out."""
+        loop = asyncio.get_running_loop()
+        stop = asyncio.Event()
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(signum, stop.set)
+        status = 1
+        transport: asyncio.DatagramTransport | None = None
+        try:
+            await self._connect_motors()
+            Path(self.config.pose_socket.path).parent.mkdir(parents=True, exist_ok=True)
+            await self.pose_server.start()
+            transport = await open_teleop(self.config.teleop, self.teleop_receiver, self._on_teleop)
+            async with asyncio.TaskGroup() as tasks:
+                tasks.create_task(self.encoders.run(self._on_ticks), name="encoders")
+                tasks.create_task(self.marvelmind.run(), name="marvelmind")
+                tasks.create_task(self._control_loop(), name="control")
+                tasks.create_task(self._pose_loop(), name="pose")
+                tasks.create_task(self._health_loop(), name="health")
+                tasks.create_task(self._motor_supervisor(), name="motors")
+                tasks.create_task(self._until(stop), name="signals")
+                self.notifier.ready(status="running")
+                log.info("robotd running: teleop udp %s:%d, pose socket %s", self.config.teleop.bind,
+                         self.config.teleop.port, self.config.pose_socket.path)  # fmt: skip
+        except* _Shutdown:
+            status = 0
+        except* Exception as group:
+            for error in group.exceptions:
+                log.error("robotd stopping after a failure: %s: %s", type(error).__name__, error)
+                log.debug("failure", exc_info=error)
+        finally:
+            self._zero_motors()  # first, whatever happened
+            self.notifier.stopping("stopping")
+            for signum in (signal.SIGTERM, signal.SIGINT):
+                loop.remove_signal_handler(signum)
+            if transport is not None:
+                transport.close()
+            await self.pose_server.close()
+            self._close_motors()
+            if self._recorder is not None:
+                self._recorder.flush()
+            self.notifier.close()
+        return status
+
+    @staticmethod
+    async def _until(stop: asyncio.Event) -> None:
+        await stop.wait()
+        log.info("robotd stopping on signal")
+        raise _Shutdown
+
+    async def _control_loop(self) -> None:
+        """Step the controller at its rate, and at once when a command arrives."""
+        period = self.controller.period_s
+        next_tick = self.clock()
+        wake = self._teleop.wake
+        while True:
+            timeout = max(0.0, next_tick - self.clock())
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(wake.wait(), timeout)
+            wake.clear()
+            now = self.clock()
+            if now >= next_tick:
+                next_tick += period
+                if next_tick < now:  # the loop stalled: restart the schedule rather than bursting
+                    next_tick = now + period
+            self._control_step(now)
+
+    def _control_step(self, now: float) -> None:
+        teleop = self._teleop
+        fresh = teleop.received_at is not None and teleop.received_at > self._motors_ready_after
+        command = teleop.twist if fresh else None
+        duties = self.controller.step(now, command, teleop.received_at if fresh else None, self._wheel_speeds)
+        self._counters["control_steps"] += 1
+        self._alive.control = now
+        if self.motors is None:
+            return
+        try:
+            self.motors.set_duties(duties)
+        except Exception as error:  # noqa: BLE001 - pigpiod gone: zero what we can, reconnect, say so once
+            self._counters["motor_failures"] += 1
+            log.warning("motor outputs failed (%s): reconnecting to pigpiod", error)
+            self._close_motors()
+            self._motors_lost.set()
+
+    async def _connect_motors(self) -> None:
+        self.motors = await asyncio.to_thread(self._motors_factory)
+        self.motors.zero()
+
+    async def _motor_supervisor(self) -> None:
+        """Re-connect the motor outputs whenever they are lost."""
+        while True:
+            await self._motors_lost.wait()
+            self._motors_lost.clear()
+            await self._reconnect_motors()
+
+    async def _reconnect_motors(self) -> None:
+        delay = 0.2
+        while self.motors is None:
+            await asyncio.sleep(delay)
+            try:
+                await self._connect_motors()
+            except Exception as error:  # noqa: BLE001 - keep trying with backoff until pigpiod is back
+                log.debug("pigpiod still unavailable: %s", error)
+                delay = min(delay * 2.0, self.config.pigpiod.reconnect_max_s)
+                continue
+            # only a command that arrives from now on drives the motors again
+            self._motors_ready_after = self.clock()
+            log.info("motor outputs reconnected; waiting for a fresh command")
+
+    def _zero_motors(self) -> None:
+        if self.motors is not None:
+            try:
+                self.motors.zero()
+            except Exception as error:  # noqa: BLE001 - nothing more can be done here than to say so
+                log.error("could not zero the motors: %s", error)
+
+    def _close_motors(self) -> None:
+        motors, self.motors = self.motors, None
+        if motors is not None:
+            with contextlib.suppress(Exception):
+                motors.close()
+
+    async def _pose_loop(self) -> None:
+        period = 1.0 / self.config.pose_socket.rate_hz
+        next_status = self.clock()
+        while True:
+            await asyncio.sleep(period)
+            self._publish_pose()
+            now = self.clock()
+            if now >= next_status:
+                next_status = now + STATUS_PERIOD_S
+                self.pose_server.publish(self._status_message(now))
+                if self._recorder is not None:
+                    self._recorder.flush()
+
+    def _publish_pose(self) -> None:
+        now = self.clock()
+        estimate = self.estimator.pose(now)
+        health = self.marvelmind.health(now)
+        fix_state = "stale" if health.stale else estimate.state.value
+        self.pose_server.publish(
+            posesock.pose_message(
+                t=estimate.t,
+                stamp=time.time(),
+                pose=(estimate.x, estimate.y, estimate.theta),
+                twist=(estimate.vx, estimate.vy, estimate.wz),
+                covariance=estimate.cov,
+                fix_age_s=estimate.fix_age_s if math.isfinite(estimate.fix_age_s) else None,
+                fix_state=fix_state,
+                odometry_state=self._odometry_state,
+            )
+        )
+
+    def _status_message(self, now: float) -> dict[str, Any]:
+        encoders = self.encoders.counters
+        health = self.marvelmind.health(now)
+        drivers: dict[str, dict[str, Any]] = {
+            "encoders": {
+                "reports": encoders.reports,
+                "lost_reports": encoders.lost_reports,
+                "illegal_transitions": list(encoders.illegal_transitions),
+                "reconnects": encoders.reconnects,
+                "state": self._odometry_state,
+            },
+            "marvelmind": {
+                **self.marvelmind.counters.as_dict(),
+                "state": health.state.value,
+                "connected": health.connected,
+                "stale": health.stale,
+            },
+            "teleop": dict(self.teleop_receiver.counters()),
+            "control": {**self._counters, "state": self.controller.last.state.value},
+            "pose_socket": dict(self.pose_server.counters),
+        }
+        return posesock.status_message(
+            t=now, stamp=time.time(), drivers=drivers, filter_diagnostics=dict(self.estimator.counters)
+        )
+
+    async def _health_loop(self) -> None:
+        """Ping the watchdog while the control loop and the filter make progress; say how things stand."""
+        period = self.notifier.watchdog_period_s or STATUS_PERIOD_S
+        control_limit = 5.0 * self.controller.period_s
+        filter_limit = 5.0 / self.config.encoders.publish_rate_hz + 1.0
+        while True:
+            await asyncio.sleep(period)
+            now = self.clock()
+            control_ok = now - self._alive.control < control_limit + period
+            filter_ok = now - self._alive.filter < filter_limit + period
+            if control_ok and filter_ok:
+                self.notifier.watchdog()
+            estimate = self.estimator.pose(now)
+            health = self.marvelmind.health(now)
+            self.notifier.status(
+                f"pose ({estimate.x:.2f}, {estimate.y:.2f}, {math.degrees(estimate.theta):.0f} deg) "
+                f"fix {('stale' if health.stale else estimate.state.value)}, odometry {self._odometry_state}, "
+                f"control {self.controller.last.state.value}, {self.pose_server.clients} pose clients"
+            )
+
+    def _open_recorder(self, stream: TextIO | None) -> logfile.LogWriter | None:
+        if stream is None:
+            return None
+        robot = self.config.robot
+        meta = logfile.Meta(
+            robot={
+                "wheel_radius": robot.wheel_radius_m,
+                "lx": robot.lx_m,
+                "ly": robot.ly_m,
+                "counts_per_rev": self.config.encoders.counts_per_rev,
+                "ips_offset": list(robot.ips_offset_m),
+            },
+            source="robotd run --record",
+        )
+        return logfile.LogWriter(stream, meta)
+
+
+def run_daemon(config: RobotdConfig, record_path: Path | None = None) -> int:
+    """Run the daemon in a fresh event loop; returns the process exit status."""
+    if record_path is None:
+        return asyncio.run(Daemon(config).run())
+    record_path.parent.mkdir(parents=True, exist_ok=True)
+    with record_path.open("w", encoding="utf-8") as record:
+        return asyncio.run(Daemon(config, record=record).run())
