@@ -34,6 +34,8 @@ from drivers.pigpio_protocol import REPORT_SIZE, Cmd, Mode, Pull, decode_reports
 from drivers.quadrature import EdgeTimedSpeed, EncoderWiring, QuadratureDecoder, transition_table
 from robotd.config import WHEELS, EncodersConfig, PigpiodConfig
 
+DECODE_BATCH_BYTES = 1 << 16
+"""Reports gathered before decoding without waiting for the next publication (5461 reports)."""
 RESYNC_PERIOD_S = 5.0
 """How often the tick-to-monotonic map is re-anchored (follows drift between pigpio's and the kernel's clocks)."""
 
@@ -101,6 +103,7 @@ class PigpioEncoders:
         self._speed = EdgeTimedSpeed(len(self._wiring), stale_after_us=self._stale_after_us())
         self._gaps = SequenceGaps()
         self._tick_clock: TickClock | None = None
+        self._unread = bytearray()
         self._connected = False
         self._degraded = False
         self._reports = 0
@@ -160,6 +163,7 @@ class PigpioEncoders:
 
         Its sequence restarts and its edge times start a new time line; counts carry on.
         """
+        self._unread.clear()
         self._decoder.restart(levels)
         self._gaps.restart()
         self._tick_clock = TickClock(tick, monotonic_s)
@@ -179,6 +183,7 @@ class PigpioEncoders:
             except* (OSError, EOFError, asyncio.IncompleteReadError):
                 pass
             finally:
+                self._drain()  # what arrived before the break still counts
                 self._connected = False
                 self._degraded = True
                 notifications[2].close()
@@ -193,18 +198,26 @@ class PigpioEncoders:
                     break
 
     async def _read(self, reader: asyncio.StreamReader) -> None:
-        """Decode reports as they arrive, a whole read at a time."""
-        remainder = b""
+        """Take reports off the socket as they arrive; decode them in batches of DECODE_BATCH_BYTES or at publication.
+
+        pigpiod flushes notifications every millisecond; decoding each small read would pay numpy's fixed cost per
+        call a thousand times a second, so reads are only gathered here.
+        """
         while True:
-            data = await reader.read(1 << 16)
+            data = await reader.read(DECODE_BATCH_BYTES)
             if not data:
                 raise EOFError("pigpiod closed the notification socket")
-            if remainder:
-                data = remainder + data
-            whole = len(data) - len(data) % REPORT_SIZE
-            remainder = data[whole:]
-            if whole:
-                self.decode(data[:whole])
+            self._unread += data
+            if len(self._unread) >= DECODE_BATCH_BYTES:
+                self._drain()
+
+    def _drain(self) -> None:
+        """Decode every whole report read so far."""
+        whole = len(self._unread) - len(self._unread) % REPORT_SIZE
+        if whole:
+            data = bytes(self._unread[:whole])
+            del self._unread[:whole]
+            self.decode(data)
 
     def decode(self, data: bytes) -> None:
         """Decode whole 12-byte reports (the bulk path; public for the benchmark)."""
@@ -239,6 +252,8 @@ class PigpioEncoders:
 
     def snapshot(self) -> WheelTicks:
         """The wheel ticks now; clears the degraded flag once reported."""
+        if self._connected:
+            self._drain()
         now = self._clock()
         if self._connected and self._tick_clock is not None:
             speeds = self._speed.update(self._decoder, self._tick_clock.to_unwrapped(now)) * self._radians_per_count

@@ -20,11 +20,10 @@ class SequenceGaps:
         """Account for a batch of sequence numbers; returns how many reports are missing in or before it."""
         if not len(seq):
             return 0
-        expected = np.empty(len(seq), dtype=np.uint16)
-        expected[0] = seq[0] if self._next is None else self._next
-        expected[1:] = seq[:-1] + np.uint16(1)
-        # A gap of k reports shows as seq - expected = k (mod 2^16); a burst of 65536 is indistinguishable from none.
-        missing = int(((seq - expected) & np.uint16(0xFFFF)).astype(np.int64).sum())
+        first = int(seq[0]) if self._next is None else self._next
+        # Each gap of k reports adds k to the last number: the gaps of the whole batch telescope to one subtraction.
+        # Losses are counted modulo 2^16: 65536 reports lost between two reads would go unseen.
+        missing = (int(seq[-1]) - first - (len(seq) - 1)) & 0xFFFF
         self._next = (int(seq[-1]) + 1) & 0xFFFF
         self.lost += missing
         return missing

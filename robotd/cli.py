@@ -26,7 +26,9 @@ COMMAND_MODULES = (
     "robotd.commands.wheels",
     "robotd.commands.sim",
     "robotd.commands.replay",
+    "robotd.commands.experiment",
     "robotd.commands.run",
+    "robotd.commands.demo",
 )
 
 

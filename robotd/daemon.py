@@ -17,6 +17,7 @@ command that arrived after the reconnection.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import math
@@ -38,11 +39,12 @@ from robotd.control import MotionController
 from robotd.estimator import Estimator
 from robotd.kinematics import Geometry, Twist
 from robotd.sdnotify import Notifier
-from robotd.teleop import StopCommand, TeleopCommand, TeleopMessage, open_teleop, receiver_from_config
+from robotd.teleop import StopCommand, TeleopMessage, open_teleop, receiver_from_config
 
 log = logging.getLogger("robotd")
 
 ZERO = (0.0, 0.0, 0.0, 0.0)
+STOP = Twist(0.0, 0.0, 0.0)
 STATUS_PERIOD_S = 1.0
 
 
@@ -68,6 +70,36 @@ class _Teleop:
 
 
 MotorsFactory = Callable[[], MotorOutputs]
+
+
+class PeriodStats:
+    """Intervals between a loop's scheduled ticks over the last `window_s`: p50, p99 and max, in milliseconds."""
+
+    def __init__(self, window_s: float = 1.0) -> None:
+        self.window_s = window_s
+        self._ticks: collections.deque[tuple[float, float]] = collections.deque()  # (tick time, interval)
+        self._previous: float | None = None
+
+    def tick(self, now: float) -> None:
+        """Note a scheduled tick at `now`."""
+        if self._previous is not None:
+            self._ticks.append((now, now - self._previous))
+        self._previous = now
+        while self._ticks and self._ticks[0][0] < now - self.window_s:
+            self._ticks.popleft()
+
+    def summary(self) -> dict[str, float | int]:
+        """{"p50_ms", "p99_ms", "max_ms", "ticks"} over the window (NaN without a tick; encoded as null)."""
+        intervals = sorted(interval for _, interval in self._ticks)
+        if not intervals:
+            return {"p50_ms": math.nan, "p99_ms": math.nan, "max_ms": math.nan, "ticks": 0}
+        last = len(intervals) - 1
+        return {
+            "p50_ms": 1e3 * intervals[round(0.50 * last)],
+            "p99_ms": 1e3 * intervals[round(0.99 * last)],
+            "max_ms": 1e3 * intervals[last],
+            "ticks": len(intervals),
+        }
 
 
 class Daemon:
@@ -96,11 +128,18 @@ class Daemon:
         self.marvelmind = MarvelmindReader(config.marvelmind, self._on_marvelmind, clock)
         self.teleop_receiver = receiver_from_config(config.teleop)
         self.notifier = Notifier()
+        pose_socket = config.pose_socket
+        self.status_period_s = 1.0 / pose_socket.status_rate_hz
         self.pose_server = posesock.PoseServer(
-            config.pose_socket.path,
-            int(config.pose_socket.mode, 8),
-            hello=posesock.hello_message(config.pose_socket.rate_hz, 1.0 / STATUS_PERIOD_S),
+            pose_socket.path,
+            int(pose_socket.mode, 8),
+            hello=posesock.hello_message(pose_socket.rate_hz, pose_socket.status_rate_hz),
+            queue_size=pose_socket.client_queue,
+            stall_s=pose_socket.client_stall_s,
+            max_clients=pose_socket.max_clients,
         )
+        self.control_periods = PeriodStats()
+        self._last_fix_arrival: float | None = None
         self._teleop = _Teleop()
         self._alive = _Liveness()
         self._wheel_speeds: tuple[float, float, float, float] = ZERO
@@ -123,6 +162,7 @@ class Daemon:
     def _on_marvelmind(self, event: MarvelmindEvent) -> None:
         if isinstance(event, Position):
             self.estimator.on_fix(event.arrival, event.x, event.y, event.t_meas)
+            self._last_fix_arrival = event.arrival
             if self._recorder is not None:
                 self._recorder.write(logfile.IpsFix(event.arrival, event.x, event.y, event.z, event.t_meas))
             self._publish_pose()  # a fix reaches the pose socket now, not at the next period
@@ -133,14 +173,11 @@ class Daemon:
 
     def _on_teleop(self, message: TeleopMessage) -> None:
         teleop = self._teleop
-        if isinstance(message, StopCommand):
-            teleop.twist, teleop.received_at = None, None  # an explicit stop: motors off at once, no ramp
-            twist = Twist(0.0, 0.0, 0.0)
-        else:
-            assert isinstance(message, TeleopCommand)
-            teleop.twist, teleop.received_at = message.twist, message.received_at
-            twist = message.twist
-            self._counters["teleop_commands"] += 1
+        # An explicit stop brakes at the acceleration limit, then the controller turns the motors off (IDLE):
+        # cutting the duties at speed would let the robot coast an unknown distance.
+        twist = STOP if isinstance(message, StopCommand) else message.twist
+        teleop.twist, teleop.received_at = twist, message.received_at
+        self._counters["teleop_commands"] += 1
         if self._recorder is not None:
             self._recorder.write(logfile.Command(message.received_at, twist.vx, twist.vy, twist.wz))
         teleop.wake.set()
@@ -209,6 +246,7 @@ class Daemon:
             wake.clear()
             now = self.clock()
             if now >= next_tick:
+                self.control_periods.tick(now)
                 next_tick += period
                 if next_tick < now:  # the loop stalled: restart the schedule rather than bursting
                     next_tick = now + period
@@ -277,7 +315,7 @@ class Daemon:
             self._publish_pose()
             now = self.clock()
             if now >= next_status:
-                next_status = now + STATUS_PERIOD_S
+                next_status = now + self.status_period_s
                 self.pose_server.publish(self._status_message(now))
                 if self._recorder is not None:
                     self._recorder.flush()
@@ -287,18 +325,20 @@ class Daemon:
         estimate = self.estimator.pose(now)
         health = self.marvelmind.health(now)
         fix_state = "stale" if health.stale else estimate.state.value
-        self.pose_server.publish(
-            posesock.pose_message(
-                t=estimate.t,
-                stamp=time.time(),
-                pose=(estimate.x, estimate.y, estimate.theta),
-                twist=(estimate.vx, estimate.vy, estimate.wz),
-                covariance=estimate.cov,
-                fix_age_s=estimate.fix_age_s if math.isfinite(estimate.fix_age_s) else None,
-                fix_state=fix_state,
-                odometry_state=self._odometry_state,
-            )
+        message = posesock.pose_message(
+            t=estimate.t,
+            stamp=time.time(),
+            pose=(estimate.x, estimate.y, estimate.theta),
+            twist=(estimate.vx, estimate.vy, estimate.wz),
+            covariance=estimate.cov,
+            fix_age_s=estimate.fix_age_s if math.isfinite(estimate.fix_age_s) else None,
+            fix_state=fix_state,
+            odometry_state=self._odometry_state,
         )
+        # robotd's addition to the pose: when the newest fix given to the filter arrived (monotonic s), so a reader
+        # can tell which fix a pose contains (and measure the fix-to-pose latency)
+        message["fix_t"] = self._last_fix_arrival
+        self.pose_server.publish(message)
 
     def _status_message(self, now: float) -> dict[str, Any]:
         encoders = self.encoders.counters
@@ -318,7 +358,11 @@ class Daemon:
                 "stale": health.stale,
             },
             "teleop": dict(self.teleop_receiver.counters()),
-            "control": {**self._counters, "state": self.controller.last.state.value},
+            "control": {
+                **self._counters,
+                "state": self.controller.last.state.value,
+                "period": self.control_periods.summary(),
+            },
             "pose_socket": dict(self.pose_server.counters),
         }
         return posesock.status_message(

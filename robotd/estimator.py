@@ -18,7 +18,6 @@ Theory of operation
 
 from __future__ import annotations
 
-import bisect
 import enum
 import math
 from collections import deque
@@ -26,10 +25,11 @@ from dataclasses import dataclass
 
 from robotd import ekf, kinematics
 from robotd.config import EkfConfig
+from robotd.heading import LN4, HeadingAligner
+from robotd.history import Entry, History, Predictor, Twist3, initial_entry
 
 SEED_FIXES = 3
 MIN_REALIGN_RAD = 0.35  # smaller heading errors are the EKF's own business: it corrects them from fixes in motion
-LN4 = 2.0 * math.log(2.0)  # median of a chi-square with 2 dof: |nu|^2 / sigma^2 has this median
 
 
 class TrackState(enum.Enum):
@@ -87,29 +87,6 @@ class PoseEstimate:
     state: TrackState
 
 
-@dataclass(slots=True)
-class _Entry:
-    """The state after one event, and the event (to apply again after a late fix)."""
-
-    t: float
-    x: float
-    y: float
-    theta: float
-    p: ekf.Cov
-    u: tuple[float, float, float]  # twist in force after t
-    step_u: tuple[float, float, float] | None  # input event: twist used over (previous t, t]; None for a fix
-    fix: tuple[float, float, float, bool] | None  # fix event: zx, zy, r, fused
-
-
-@dataclass(slots=True)
-class _AlignPoint:
-    t: float
-    zx: float
-    zy: float
-    ox: float  # odometry-only beacon position, in the frame the window started in
-    oy: float
-
-
 class Estimator:
     """Pose estimation from wheel odometry and IPS fixes (see the module docstring)."""
 
@@ -130,7 +107,6 @@ class Estimator:
         self._latency = ekf_config.latency_compensation and not paper
         self._gating = ekf_config.gating and not paper
         self._adaptive = ekf_config.adaptive_ips_noise and not paper
-        self._midpoint = not paper
         self._gate = ekf.chi2_gate_2dof(ekf_config.gate_probability)
         self._r_floor = ekf_config.ips_sigma_m**2
         self._r = self._r_floor
@@ -144,10 +120,10 @@ class Estimator:
                 slip2=c.slip_heading_sigma_rad**2,
                 turn2=c.turn_heading_sigma_rad**2,
             )
-        x0, y0, th0 = c.initial_pose
-        p0 = ekf.cov_diag(*c.initial_sigma)
-        self._hist: list[_Entry] = [_Entry(-math.inf, x0, y0, ekf.wrap_angle(th0), p0, (0.0, 0.0, 0.0), None, None)]
-        self._times: list[float] = [-math.inf]
+        self._predictor = Predictor(self._noise, midpoint=not paper)
+        self._history = History(
+            initial_entry(c.initial_pose, ekf.cov_diag(*c.initial_sigma)), c.history_s, keep_past=self._latency
+        )
         self._seeded = False
         self._state = TrackState.INITIALISING
         self._last_accept_t = -math.inf
@@ -160,10 +136,7 @@ class Estimator:
         self._rejected: deque[tuple[float, float, float]] = deque(maxlen=256)  # t_meas, innovation x, y
         self._candidates: deque[tuple[float, float, float]] = deque(maxlen=SEED_FIXES)
         self._innovations: deque[float] = deque(maxlen=31)  # |nu|^2 - (trace(S) - 2 r), for the noise estimate
-        self._align: list[_AlignPoint] | None = [] if (c.heading_align_m > 0.0 and not paper) else None
-        self._align_odo = (0.0, 0.0, 0.0)  # odometry-only pose since the window started
-        self._align_dist = 0.0
-        self._last_window_odo = (0.0, 0.0, 0.0)
+        self._aligner = HeadingAligner(c.heading_align_m, self._offset, enabled=c.heading_align_m > 0.0 and not paper)
         self.counters: dict[str, int] = dict.fromkeys(
             (
                 "wheels",
@@ -210,11 +183,11 @@ class Estimator:
         if not (math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(wz)):
             self.counters["dropped_non_finite"] += 1
             return
-        if t < self._hist[-1].t:
+        if t < self._history.last.t:
             self.counters["dropped_out_of_order"] += 1
             return
         self.counters["twists"] += 1
-        self._input_step(t, self._hist[-1].u, (vx, vy, wz))
+        self._input_step(t, self._history.last.u, (vx, vy, wz))
 
     def on_fix_lost(self, t: float) -> None:  # noqa: ARG002 - the daemon's interface carries the time
         """A position packet flagged "coordinates unavailable": never fused, only counted."""
@@ -235,42 +208,20 @@ class Estimator:
         self._tick_base, self._tick_base_t = last, self._tick_last_t
         self._input_step(self._tick_last_t, u, u)
 
-    def _input_step(self, t: float, step_u: tuple[float, float, float], next_u: tuple[float, float, float]) -> None:
-        last = self._hist[-1]
+    def _input_step(self, t: float, step_u: Twist3, next_u: Twist3) -> None:
+        last = self._history.last
         if last.t == -math.inf:  # the first input only sets the clock
-            last.t, self._times[-1], last.u = t, t, next_u
+            self._history.set_last_time(t)
+            last.u = next_u
             self._last_input_t = t
             return
         t = max(t, last.t)  # a fix may have carried the state past this input's time
-        self._track_alignment(step_u, t - last.t)
-        entry = self._step(last, t, step_u)
+        self._aligner.track(step_u, t - last.t)
+        entry = self._predictor.step(last, t, step_u)
         entry.u = next_u
         entry.step_u = step_u
-        self._append(entry)
+        self._history.append(entry)
         self._last_input_t = t
-
-    def _step(self, prev: _Entry, t: float, u: tuple[float, float, float]) -> _Entry:
-        """The state predicted from prev to t with twist u (eqs. 5-7; midpoint heading for robotd)."""
-        dt = t - prev.t
-        if dt <= 0.0:
-            return _Entry(t, prev.x, prev.y, prev.theta, prev.p, u, None, None)
-        vx, vy, wz = u
-        th = prev.theta + 0.5 * wz * dt if self._midpoint else prev.theta
-        q = ekf.process_noise(th, vx, vy, wz, dt, self._noise)
-        x, y, _, p = ekf.predict(prev.x, prev.y, th, prev.p, vx, vy, 0.0, dt, q)
-        return _Entry(t, x, y, ekf.wrap_angle(prev.theta + wz * dt), p, u, None, None)
-
-    def _append(self, entry: _Entry) -> None:
-        self._hist.append(entry)
-        self._times.append(entry.t)
-        if not self._latency:
-            del self._hist[:-1], self._times[:-1]
-            return
-        horizon = entry.t - self.config.history_s
-        if self._times[0] < horizon and len(self._times) > 64:
-            cut = bisect.bisect_left(self._times, horizon) - 1
-            if cut > 0:
-                del self._hist[:cut], self._times[:cut]
 
     # --- fixes ------------------------------------------------------------------------------------
 
@@ -285,10 +236,10 @@ class Estimator:
         if not self._latency or not math.isfinite(t_meas):
             t_meas = t
         t_meas = min(t_meas, t)
-        last = self._hist[-1]
-        if last.t == -math.inf:
-            last.t, self._times[-1] = t_meas, t_meas
-        if t_meas < self._times[0]:
+        history = self._history
+        if history.last.t == -math.inf:
+            history.set_last_time(t_meas)
+        if t_meas < history.start:
             self.counters["fixes_too_old"] += 1
             return Diagnostics(
                 t,
@@ -300,33 +251,24 @@ class Estimator:
                 Verdict.TOO_OLD,
                 math.sqrt(self._r),
             )
-        k = bisect.bisect_right(self._times, t_meas) - 1
-        if k < len(self._hist) - 1:
+        k = history.index_at(t_meas)
+        if k < len(history.entries) - 1:
             self.counters["late_fixes"] += 1
-        base = self._hist[k]
-        prior = self._step(base, t_meas, base.u) if t_meas > base.t else base
+        base = history.entries[k]
+        prior = self._predictor.step(base, t_meas, base.u) if t_meas > base.t else base
         prior.u = base.u
         ox, oy = self._offset
         r = self._r
         inn = ekf.innovation(prior.x, prior.y, prior.theta, prior.p, x, y, r, ox, oy)
         verdict = self._judge(t_meas, inn, r)
-        self._record_alignment(t_meas, x, y)
-        fused = _Entry(t_meas, prior.x, prior.y, prior.theta, prior.p, prior.u, None, (x, y, r, False))
+        if self._seeded:
+            self._aligner.record(t_meas, x, y)
+        fused = Entry(t_meas, prior.x, prior.y, prior.theta, prior.p, prior.u, None, (x, y, r, False))
         if verdict is Verdict.ACCEPTED:
             fused = self._fuse(prior, x, y, r, inn)
         elif verdict in (Verdict.SEEDED, Verdict.RECOVERED):
             fused = self._seed(prior, x, y, r, verdict)
-        tail = self._hist[k + 1 :]
-        del self._hist[k + 1 :], self._times[k + 1 :]
-        self._hist.append(fused)
-        self._times.append(fused.t)
-        prev = fused
-        for event in tail:  # apply every later event again, from the corrected state
-            prev = self._replay_event(prev, event)
-            self._hist.append(prev)
-            self._times.append(prev.t)
-        if not self._latency:
-            del self._hist[:-1], self._times[:-1]
+        history.rewrite(k, fused, self._replay_event)  # every later event again, from the corrected state
         if verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED or verdict is Verdict.ACCEPTED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
         self._maybe_realign()
@@ -334,10 +276,10 @@ class Estimator:
             t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, self._gate, verdict, math.sqrt(r)
         )
 
-    def _replay_event(self, prev: _Entry, event: _Entry) -> _Entry:
+    def _replay_event(self, prev: Entry, event: Entry) -> Entry:
         if event.fix is not None:
             zx, zy, r, was_fused = event.fix
-            moved = self._step(prev, event.t, prev.u)
+            moved = self._predictor.step(prev, event.t, prev.u)
             moved.u = prev.u
             if not was_fused:
                 moved.fix = event.fix
@@ -345,29 +287,29 @@ class Estimator:
             inn = ekf.innovation(moved.x, moved.y, moved.theta, moved.p, zx, zy, r, *self._offset)
             return self._fuse(moved, zx, zy, r, inn)
         assert event.step_u is not None
-        entry = self._step(prev, event.t, event.step_u)
+        entry = self._predictor.step(prev, event.t, event.step_u)
         entry.u, entry.step_u = event.u, event.step_u
         return entry
 
-    def _fuse(self, prior: _Entry, zx: float, zy: float, r: float, inn: ekf.Innovation) -> _Entry:
+    def _fuse(self, prior: Entry, zx: float, zy: float, r: float, inn: ekf.Innovation) -> Entry:
         freeze = math.hypot(prior.u[0], prior.u[1]) < self.config.heading_min_speed_mps and not self.paper
         x, y, th, p = ekf.update(prior.x, prior.y, prior.theta, prior.p, inn, r, freeze_heading=freeze)
-        return _Entry(prior.t, x, y, th, p, prior.u, None, (zx, zy, r, True))
+        return Entry(prior.t, x, y, th, p, prior.u, None, (zx, zy, r, True))
 
-    def _seed(self, prior: _Entry, zx: float, zy: float, r: float, verdict: Verdict) -> _Entry:
+    def _seed(self, prior: Entry, zx: float, zy: float, r: float, verdict: Verdict) -> Entry:
         """Move the beacon onto the agreeing fixes (their median innovation), forgetting the position's past."""
         if verdict is Verdict.RECOVERED:
             recent = list(self._rejected)[-self.config.recovery_min_fixes :]
             self._rejected.clear()
             self._innovations.clear()
-            self._restart_alignment()  # carried robots may have been turned too: check the heading again
+            self._aligner.restart()  # carried robots may have been turned too: check the heading again
         else:
             recent = list(self._candidates)
             self._candidates.clear()
         dx = sorted(e[1] for e in recent)[len(recent) // 2]
         dy = sorted(e[2] for e in recent)[len(recent) // 2]
         p = (r, 0.0, 0.0, r, 0.0, prior.p[5])
-        return _Entry(prior.t, prior.x + dx, prior.y + dy, prior.theta, p, prior.u, None, (zx, zy, r, False))
+        return Entry(prior.t, prior.x + dx, prior.y + dy, prior.theta, p, prior.u, None, (zx, zy, r, False))
 
     def _agree(self, innovations: list[tuple[float, float, float]]) -> bool:
         """Whether fixes (as innovations, odometry motion removed) all lie close to their median."""
@@ -428,73 +370,37 @@ class Estimator:
 
     # --- heading alignment --------------------------------------------------------------------------
 
-    def _restart_alignment(self) -> None:
-        if self.config.heading_align_m > 0.0 and not self.paper:
-            self._last_window_odo = self._align_odo
-            self._align = []
-            self._align_odo = (0.0, 0.0, 0.0)
-            self._align_dist = 0.0
-
-    def _track_alignment(self, u: tuple[float, float, float], dt: float) -> None:
-        if self._align is None or dt <= 0.0:
-            return
-        ax, ay, ath = self._align_odo
-        th = ath + 0.5 * u[2] * dt
-        c, s = math.cos(th), math.sin(th)
-        self._align_odo = (ax + (u[0] * c - u[1] * s) * dt, ay + (u[0] * s + u[1] * c) * dt, ath + u[2] * dt)
-        self._align_dist += math.hypot(u[0], u[1]) * dt
-
-    def _record_alignment(self, t_meas: float, zx: float, zy: float) -> None:
-        if self._align is None or not self._seeded:
-            return
-        ax, ay, ath = self._align_odo
-        ox, oy = self._offset
-        c, s = math.cos(ath), math.sin(ath)
-        self._align.append(_AlignPoint(t_meas, zx, zy, ax + ox * c - oy * s, ay + ox * s + oy * c))
-        if len(self._align) > 400:  # a robot standing still must not grow this forever
-            del self._align[:200]
-
     def _maybe_realign(self) -> None:
-        """Fit the rotation of the recent odometry track onto the fixes; take it when the filter's heading disagrees.
-
-        The window restarts every `heading_align_m` of travel, so a heading gone wrong at any time (unknown at
-        start, a robot turned while carried, slip the model did not expect) is caught within one window.
-        """
-        points = self._align
-        if points is None or len(points) < 6 or self._align_dist < 0.4 * self.config.heading_align_m:
-            return
-        fit = _fit_rotation(points, 4.0 * math.sqrt(self._r))
-        if self._align_dist >= self.config.heading_align_m:
-            self._restart_alignment()
+        """Take the heading of the aligner's rotation fit when the filter's heading disagrees with it."""
+        fit = self._aligner.check(self._r)
         if fit is None:
             return
-        rotation, sigma, tx, ty = fit
-        last = self._hist[-1]
+        last = self._history.last
         # the filter's heading at the window's start is its current heading less the odometry turn since
-        ax, ay, ath = self._align_odo if self._align is points else self._last_window_odo
+        ax, ay, ath = fit.window_odo
         filter_start = ekf.wrap_angle(last.theta - ath)
-        disagreement = abs(ekf.wrap_angle(rotation - filter_start))
+        disagreement = abs(ekf.wrap_angle(fit.rotation - filter_start))
+        sigma = fit.sigma
         if sigma > 0.15 or disagreement <= max(4.0 * math.sqrt(sigma * sigma + last.p[5]), MIN_REALIGN_RAD):
             return
         self.counters["heading_realigned"] += 1
-        c, s = math.cos(rotation), math.sin(rotation)
-        x, y = tx + ax * c - ay * s, ty + ax * s + ay * c
+        c, s = math.cos(fit.rotation), math.sin(fit.rotation)
+        x, y = fit.tx + ax * c - ay * s, fit.ty + ax * s + ay * c
         r = self._r
-        entry = _Entry(
-            last.t, x, y, ekf.wrap_angle(rotation + ath), (r, 0.0, 0.0, r, 0.0, sigma * sigma), last.u, None, None
+        entry = Entry(
+            last.t, x, y, ekf.wrap_angle(fit.rotation + ath), (r, 0.0, 0.0, r, 0.0, sigma * sigma), last.u, None, None
         )
         # the history before now was built on the wrong heading: start it again from here
-        self._hist = [entry]
-        self._times = [entry.t]
+        self._history.reset(entry)
         self._rejected.clear()
         self._innovations.clear()
-        self._restart_alignment()
+        self._aligner.restart()
 
     # --- output ---------------------------------------------------------------------------------------
 
     def pose(self, t: float | None = None) -> PoseEstimate:
         """The estimate, extrapolated with the twist in force to time t when t is later than the newest input."""
-        last = self._hist[-1]
+        last = self._history.last
         x, y, th = last.x, last.y, last.theta
         when = last.t
         vx, vy, wz = last.u
@@ -513,46 +419,6 @@ class Estimator:
             x, y, th = x + (vx * c - vy * s) * dt, y + (vx * s + vy * c) * dt, ekf.wrap_angle(th + wz * dt)
             when = t
         return PoseEstimate(when, x, y, th, vx, vy, wz, ekf.cov_full(last.p), when - self._last_accept_t, self._state)
-
-
-def _fit_rotation(points: list[_AlignPoint], tolerance: float) -> tuple[float, float, float, float] | None:
-    """The rotation (and translation) taking odometry track onto fixes, least squares with outliers trimmed.
-
-    Returns (rotation, its standard deviation, tx, ty) or None when the track is too short or too inconsistent.
-    """
-    use = points
-    for _ in range(3):
-        n = len(use)
-        if n < 5:
-            return None
-        mzx = sum(p.zx for p in use) / n
-        mzy = sum(p.zy for p in use) / n
-        mox = sum(p.ox for p in use) / n
-        moy = sum(p.oy for p in use) / n
-        dot = cross = spread = 0.0
-        for p in use:
-            ox, oy, zx, zy = p.ox - mox, p.oy - moy, p.zx - mzx, p.zy - mzy
-            dot += ox * zx + oy * zy
-            cross += ox * zy - oy * zx
-            spread += ox * ox + oy * oy
-        rotation = math.atan2(cross, dot)
-        c, s = math.cos(rotation), math.sin(rotation)
-        tx, ty = mzx - (mox * c - moy * s), mzy - (mox * s + moy * c)
-        residuals = [math.hypot(p.zx - (tx + p.ox * c - p.oy * s), p.zy - (ty + p.ox * s + p.oy * c)) for p in use]
-        median = sorted(residuals)[len(residuals) // 2]
-        keep = [p for p, e in zip(use, residuals, strict=True) if e <= max(3.0 * median, tolerance)]
-        if len(keep) == len(use):
-            break
-        use = keep
-    if len(use) < 0.7 * len(points):  # too many points off the fit: no trustworthy rotation in this window
-        return None
-    if spread <= 0.0:
-        return None
-    noise = max(median / math.sqrt(LN4), 1e-3)
-    sigma = noise / math.sqrt(spread)
-    if sigma > 0.5:
-        return None
-    return rotation, sigma, tx, ty
 
 
 __all__ = ["Diagnostics", "Estimator", "PoseEstimate", "TrackState", "Verdict"]

@@ -208,6 +208,14 @@ def glitch_filter(ticks: U32, words: U32, previous: int, steady_us: dict[int, in
         return ticks[keep], words[keep]
     # Work in microseconds relative to the first tick: signed 32-bit steps unwrap the 2^32 wrap-around.
     steps = (ticks[1:] - ticks[:-1]).view(np.int32).astype(np.int64)
+    delays = {steady for gpio, steady in steady_us.items() if steady > 0 and np.any(changes & np.uint32(1 << gpio))}
+    if len(delays) == 1 and not np.any(changes & np.uint32(BANK1 ^ filtered)):
+        # The common case (encoder pins, one filter, no glitch): when no two changes are closer than the filter,
+        # every change holds long enough, and the filter only stamps each one `steady` later.
+        steady = delays.pop()
+        keep = changes != 0
+        if not len(steps) or int(steps[keep[1:]].min(initial=steady)) >= steady:
+            return ticks[keep] + np.uint32(steady), words[keep]
     elapsed = np.concatenate((np.zeros(1, dtype=np.int64), np.cumsum(steps)))
     plain = changes & np.uint32(BANK1 ^ filtered)
     at = np.flatnonzero(plain)

@@ -8,7 +8,8 @@ import multiprocessing
 import multiprocessing.connection
 import struct
 import time
-from dataclasses import replace
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -49,45 +50,86 @@ def recorded_stream(edges: int, encoders: list[EncoderWiring]) -> tuple[bytes, l
     return encode_reports(seq, (ticks & 0xFFFFFFFF).astype(np.uint32), levels), truth
 
 
+@dataclass(frozen=True, slots=True)
+class _EdgeCallback:
+    """What `pi.callback(gpio, EITHER_EDGE, func)` registers with pigpio's notification thread."""
+
+    gpio: int
+    bit: int
+    edge: int
+    func: Callable[[int, int, int], None]
+
+
+EITHER_EDGE = 2
+PIGPIO_RECV_SIZE = 4096
+
+
 def per_edge_replay(stream: bytes, decoder: EdgeDecoder, gpios: list[int]) -> None:
-    """Dispatch a stream one callback per edge, as pigpio's callback thread does for `pi.callback` users."""
-    watched = [(gpio, 1 << gpio) for gpio in gpios]
-    last = 0
-    for offset in range(0, len(stream), REPORT_SIZE):
-        _seq, flags, tick, level = REPORT.unpack_from(stream, offset)
-        if flags:
-            continue
-        changed = level ^ last
-        last = level
-        for gpio, bit in watched:
-            if changed & bit:
-                decoder.on_edge(gpio, 1 if level & bit else 0, tick)
+    """Dispatch a stream the way pigpio's callback thread serves `pi.callback` users.
+
+    The same work per report as pigpio 1.78's client: reads of 4096 bytes, each 12-byte report cut out and
+    unpacked, every registered callback checked against the changed bits and its edge, one Python call per edge.
+    """
+    callbacks = [_EdgeCallback(gpio, 1 << gpio, EITHER_EDGE, decoder.on_edge) for gpio in gpios]
+    last_level = 0
+    pending = b""
+    for read_at in range(0, len(stream), PIGPIO_RECV_SIZE):
+        pending += stream[read_at : read_at + PIGPIO_RECV_SIZE]
+        offset = 0
+        while len(pending) - offset >= REPORT_SIZE:
+            _seq, flags, tick, level = REPORT.unpack(pending[offset : offset + REPORT_SIZE])
+            offset += REPORT_SIZE
+            if flags:
+                continue
+            changed = level ^ last_level
+            last_level = level
+            for callback in callbacks:
+                if callback.bit & changed:
+                    new_level = 1 if callback.bit & level else 0
+                    if callback.edge ^ new_level:
+                        callback.func(callback.gpio, new_level, tick)
+        pending = pending[offset:]
+
+
+def _best_of(repeats: int, run_once: Callable[[], object]) -> float:
+    """The shortest of several timed runs: the one least disturbed by other work on the machine."""
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run_once()
+        best = min(best, time.perf_counter() - start)
+    return best
 
 
 def _decode_ratio(quick: bool, encoders: EncodersConfig) -> dict[str, float]:
     encoder_wiring = wiring(encoders)
-    edges = 400_000 if quick else 2_000_000
+    edges = 200_000 if quick else 1_000_000
     stream, truth = recorded_stream(edges, encoder_wiring)
-
+    read_size = READ_SIZE - READ_SIZE % REPORT_SIZE
+    reads = [stream[offset : offset + read_size] for offset in range(0, len(stream), read_size)]
     bulk = PigpioEncoders(encoders, PigpiodConfig())
-    start = time.perf_counter()
-    bulk.begin_stream(0, 0, 0.0)
-    for offset in range(0, len(stream), READ_SIZE - READ_SIZE % REPORT_SIZE):
-        bulk.decode(stream[offset : offset + READ_SIZE - READ_SIZE % REPORT_SIZE])
-    bulk_s = time.perf_counter() - start
-
     per_edge = EdgeDecoder(encoder_wiring, encoders.decoding, 0)
-    gpios = [gpio for encoder in encoder_wiring for gpio in (encoder.a, encoder.b)]
-    start = time.perf_counter()
-    per_edge_replay(stream, per_edge, gpios)
-    per_edge_s = time.perf_counter() - start
 
+    def decode_in_bulk() -> None:
+        nonlocal bulk
+        bulk = PigpioEncoders(encoders, PigpiodConfig())
+        bulk.begin_stream(0, 0, 0.0)
+        for data in reads:
+            bulk.decode(data)
+
+    def decode_per_edge() -> None:
+        nonlocal per_edge
+        per_edge = EdgeDecoder(encoder_wiring, encoders.decoding, 0)
+        per_edge_replay(stream, per_edge, [gpio for encoder in encoder_wiring for gpio in (encoder.a, encoder.b)])
+
+    bulk_s = _best_of(5, decode_in_bulk)
+    per_edge_s = _best_of(3, decode_per_edge)
     if list(bulk.ticks) != truth or per_edge.counts != truth:
         raise AssertionError(f"decoders disagree: bulk {bulk.ticks}, per-edge {per_edge.counts}, truth {truth}")
     ratio = per_edge_s / bulk_s
-    print(f"recorded stream: {edges:,} edges, 4 wheels x4, counts exact in both decoders")
-    print(f"  per-edge callback path: {per_edge_s:7.3f} s  ({edges / per_edge_s:12,.0f} edges/s)")
-    print(f"  bulk numpy decoder:     {bulk_s:7.3f} s  ({edges / bulk_s:12,.0f} edges/s)")
+    print(f"recorded stream: {edges:,} edges, 4 wheels x4, {len(reads)} reads of 64 KiB; counts exact in both")
+    print(f"  per-edge callback path: {per_edge_s:7.3f} s  ({edges / per_edge_s:12,.0f} edges/s)  best of 3")
+    print(f"  bulk numpy decoder:     {bulk_s:7.3f} s  ({edges / bulk_s:12,.0f} edges/s)  best of 5")
     print(f"  bulk is {ratio:.1f}x faster (target >= 20x): {'PASS' if ratio >= 20 else 'FAIL'}")
     return {
         "per_edge_edges_per_s": edges / per_edge_s,
@@ -134,11 +176,12 @@ def _feeder(
                 server.drive_levels(ticks.astype(np.uint32), words, mask)
                 levels = int(words[-1])
             if elapsed >= seconds:
+                driven_s = time.monotonic() - begin
                 break
             time.sleep(max(0.0, 0.002 - (time.monotonic() - now)))
         time.sleep(0.2)  # let the server's loop write the last batch before counting what it sent
         expected = [direction[i] * done[i] * e.sign for i, e in enumerate(encoder_wiring)]
-        control.send((expected, server.reports_sent, server.reports_lost, sum(done)))
+        control.send((expected, server.reports_sent, server.reports_lost, sum(done), driven_s))
         control.recv()  # the parent has read everything
 
 
@@ -157,7 +200,7 @@ async def _consume(
     loop = asyncio.get_running_loop()
     while not await loop.run_in_executor(None, control.poll, 0.1):
         pass
-    expected, sent, lost_at_source, edges = control.recv()
+    expected, sent, lost_at_source, edges, driven_s = control.recv()
     deadline = time.monotonic() + 5
     while source.counters.reports < sent and time.monotonic() < deadline:
         await asyncio.sleep(0.01)
@@ -168,14 +211,17 @@ async def _consume(
     control.send("done")
     counters = source.counters
     exact = list(source.ticks) == expected
-    print(f"live: {edges:,} edges in {wall:.1f} s through the virtual pigpiod's socket ({edges / wall:,.0f} edges/s)")
+    print(f"live: {edges:,} edges in {driven_s:.1f} s through the virtual pigpiod's socket "
+          f"({edges / driven_s:,.0f} edges/s)")  # fmt: skip
     print(f"  reports {counters.reports:,} of {sent:,} sent, lost {counters.lost_reports + lost_at_source}, "
           f"illegal {sum(counters.illegal_transitions)}, counts {'exact' if exact else 'WRONG'} "
           f"({list(source.ticks)} vs {expected})")  # fmt: skip
     print(f"  encoder source CPU: {cpu:.2f} s for {wall:.1f} s = {100 * cpu / wall:.1f}% of one core "
           f"({1e6 * cpu / max(edges, 1):.2f} us per edge)")  # fmt: skip
+    sustained = edges / driven_s >= 0.99 * EDGES_PER_S and exact and not counters.lost_reports + lost_at_source
+    print(f"  {EDGES_PER_S:,} edges/s with zero lost counts: {'PASS' if sustained else 'FAIL'}")
     return {
-        "live_edges_per_s": edges / wall,
+        "live_edges_per_s": edges / driven_s,
         "live_lost_reports": float(counters.lost_reports + lost_at_source),
         "live_count_errors": float(sum(abs(a - b) for a, b in zip(source.ticks, expected, strict=True))),
         "live_cpu_percent": 100 * cpu / wall,

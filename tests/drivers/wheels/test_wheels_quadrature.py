@@ -10,10 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from wheels_support import levels_of_positions, walk
 
-from drivers.encoders import EdgeDecoder
+from drivers.encoders import EdgeDecoder, PigpioEncoders, wiring
 from drivers.notify_stream import SequenceGaps, TickClock
 from drivers.quadrature import Decoding, EdgeTimedSpeed, EncoderWiring, QuadratureDecoder
 from drivers.sim.quadrature_signal import encoder_words, merge_streams
+from robotd.bench.encoders import per_edge_replay, recorded_stream
+from robotd.config import EncodersConfig, PigpiodConfig
 
 A, B = 4, 17
 WHEEL = [EncoderWiring(A, B)]
@@ -170,3 +172,16 @@ def test_ticks_unwrap_across_2_to_the_32_and_map_to_the_monotonic_clock() -> Non
     assert clock.to_unwrapped(50.003) == 3000
     clock.anchor(tick=5000, monotonic_s=60.0)  # drift: the same tick now maps elsewhere
     assert clock.to_monotonic(clock.unwrap_one(5000)) == pytest.approx(60.0)
+
+
+def test_the_benchmark_stream_decodes_exactly_both_ways() -> None:
+    encoders = EncodersConfig()
+    stream, truth = recorded_stream(8000, wiring(encoders))
+    bulk = PigpioEncoders(encoders, PigpiodConfig())
+    bulk.begin_stream(0, 0, 0.0)
+    bulk.decode(stream[: 12 * 1000])
+    bulk.decode(stream[12 * 1000 :])
+    per_edge = EdgeDecoder(wiring(encoders), "x4", 0)
+    per_edge_replay(stream, per_edge, [gpio for e in wiring(encoders) for gpio in (e.a, e.b)])
+    assert list(bulk.ticks) == per_edge.counts == truth
+    assert all(truth)  # every wheel moved

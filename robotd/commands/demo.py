@@ -1,0 +1,72 @@
+"""`robotd sim` (the virtual robot and the daemon together) and `robotd demo` (the paper's square, end to end)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+DEFAULT_SIM_CONFIG = "config/sim.yaml"
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add `robotd sim` and `robotd demo`."""
+    sim = subparsers.add_parser("sim", help="run the virtual robot and the daemon together until Ctrl-C")
+    sim.add_argument("--config", default=DEFAULT_SIM_CONFIG, help=f"configuration (default {DEFAULT_SIM_CONFIG})")
+    sim.add_argument("--seed", type=int, default=None, help="the virtual robot's seed (default sim.seed)")
+    sim.add_argument("--out", default="out/sim", help="folder for logs and the daemon's sensor log (default out/sim)")
+    sim.set_defaults(handler=run_sim)
+    demo = subparsers.add_parser(
+        "demo", help="drive the paper's square on the virtual robot through the daemon; figures and results table"
+    )
+    demo.add_argument("--config", default=DEFAULT_SIM_CONFIG, help=f"configuration (default {DEFAULT_SIM_CONFIG})")
+    demo.add_argument("--loops", type=int, default=1, help="times round the square (default 1)")
+    demo.add_argument("--side", type=float, default=3.0, help="side of the square in metres (default 3)")
+    demo.add_argument("--speed", type=float, default=0.3, help="driving speed in m/s (default 0.3)")
+    demo.add_argument("--seed", type=int, default=None, help="the virtual robot's seed (default sim.seed)")
+    demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    demo.set_defaults(handler=run_demo_command)
+
+
+def run_sim(args: argparse.Namespace) -> int:
+    """Run `robotd vhw` and `robotd run` on a private copy of the configuration until interrupted."""
+    import time  # noqa: PLC0415
+
+    from robotd.demo import private_config, running_robot  # noqa: PLC0415
+
+    out = Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    config_path = private_config(Path(args.config), out)
+    with running_robot(config_path, out, args.seed) as (_children, recorder):
+        from robotd.config import load  # noqa: PLC0415
+
+        config = load(config_path)
+        print(f"robotd sim: running; config {config_path}")
+        print(f"  teleop:      robotd teleop --config {config_path}")
+        print(f"  pose stream: robotd pose --socket {config.pose_socket.path}")
+        print(f"  logs:        {out}/daemon.log, {out}/vhw.log; sensor log {out}/run.jsonl")
+        print("Ctrl-C stops both.")
+        try:
+            while recorder.is_alive():
+                time.sleep(0.5)
+        except KeyboardInterrupt:
+            print("\nrobotd sim: stopping")
+    return 0
+
+
+def run_demo_command(args: argparse.Namespace) -> int:
+    """Run the demo and print where its results are."""
+    from robotd.demo import DemoPlan, run_demo  # noqa: PLC0415
+
+    if args.loops < 1 or args.side <= 0 or args.speed <= 0:
+        print("robotd demo: --loops must be >= 1, --side and --speed > 0", file=sys.stderr)
+        return 2
+    try:
+        run_demo(Path(args.config), Path(args.out), DemoPlan(args.loops, args.side, args.speed, seed=args.seed))
+    except RuntimeError as error:
+        print(f"\nrobotd demo: {error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("\nrobotd demo: interrupted; every process it started has been stopped", file=sys.stderr)
+        return 130
+    return 0

@@ -1,0 +1,226 @@
+"""`robotd demo`: the virtual robot and the daemon as separate processes, the paper's square driven over UDP teleop.
+
+Theory of operation. The demo writes a private copy of the simulation config (free loopback ports, paths inside its
+output folder, so demos and tests never collide), starts `robotd vhw` and `robotd run --record` as child processes,
+records the pose stream from the daemon's Unix socket, and drives the square open-loop with the teleop client, as
+the paper's remote control did. At the end it stops both children (SIGTERM, then SIGKILL after a grace period: every
+child is reaped on every way out, Ctrl-C included), joins the daemon's sensor log with the simulator's ground truth,
+scores the live pose stream (robotd's EKF as it ran) and replays the log for odometry alone, the raw fixes and the
+paper's EKF, then writes the figures and the results table.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+import yaml
+
+from robotd import logfile
+from robotd.config import RobotdConfig, load
+from robotd.kinematics import Twist
+from robotd.teleop_client import Leg, UdpLink, run_plan, square_plan
+
+GRACE_S = 3.0
+
+
+@dataclass(frozen=True, slots=True)
+class DemoPlan:
+    """What the demo drives."""
+
+    loops: int = 1
+    side_m: float = 3.0
+    speed_mps: float = 0.3
+    pause_s: float = 1.0
+    seed: int | None = None
+
+
+def _free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def private_config(base: Path, out: Path) -> Path:
+    """A copy of `base` with free loopback ports and every path inside `out`; returns its path."""
+    raw: dict[str, Any] = yaml.safe_load(base.read_text(encoding="utf-8")) or {}
+    raw.setdefault("pigpiod", {})["port"] = _free_port(socket.SOCK_STREAM)
+    raw.setdefault("marvelmind", {})["device"] = str(out / "marvelmind")
+    teleop = raw.setdefault("teleop", {})
+    teleop.update({"bind": "127.0.0.1", "port": _free_port(socket.SOCK_DGRAM)})
+    raw.setdefault("pose_socket", {})["path"] = str(out / "pose.sock")
+    raw.setdefault("sim", {})["record_path"] = str(out / "truth.jsonl")
+    path = out / "config.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False), encoding="utf-8")
+    load(path)  # the copy must be as valid as the original
+    return path
+
+
+class Children:
+    """Child processes that are always stopped and reaped, whatever happens."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen[str]] = []
+        self.names: dict[int, str] = {}
+
+    def start(self, name: str, args: list[str], log_path: Path) -> subprocess.Popen[str]:
+        """Start `robotd ARGS` with its output in `log_path`."""
+        log = log_path.open("w", encoding="utf-8")
+        proc = subprocess.Popen(  # noqa: S603 - our own interpreter running our own module
+            [sys.executable, "-m", "robotd", *args], stdout=log, stderr=subprocess.STDOUT, text=True
+        )
+        log.close()
+        self.names[proc.pid] = name
+        self.procs.append(proc)
+        return proc
+
+    def stop(self, proc: subprocess.Popen[str]) -> int:
+        """SIGTERM, then SIGKILL after a grace period; returns the exit status."""
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(GRACE_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        return proc.returncode
+
+    def stop_all(self) -> None:
+        """Stop every child, last started first."""
+        for proc in reversed(self.procs):
+            self.stop(proc)
+
+
+def _wait_for(condition: Callable[[], bool], timeout_s: float, what: str, children: Children) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        for proc in children.procs:
+            if proc.poll() is not None:
+                name = children.names[proc.pid]
+                raise RuntimeError(f"{name} exited with status {proc.returncode} while waiting for {what}")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"timed out after {timeout_s:g} s waiting for {what}")
+        time.sleep(0.05)
+
+
+class PoseRecorder(threading.Thread):
+    """Reads the daemon's pose socket and appends every pose message to a JSON Lines file."""
+
+    def __init__(self, path: Path, out: Path) -> None:
+        super().__init__(name="pose-recorder", daemon=True)
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.sock.connect(str(path))
+        self.out = out
+        self.latest: dict[str, Any] | None = None
+        self.count = 0
+
+    def run(self) -> None:
+        """Copy pose lines until the daemon closes the socket."""
+        with self.sock.makefile("r", encoding="utf-8") as stream, self.out.open("w", encoding="utf-8") as out:
+            for line in stream:
+                message = json.loads(line)
+                if message.get("type") == "pose":
+                    out.write(line)
+                    self.latest = message
+                    self.count += 1
+
+    def close(self) -> None:
+        """Stop reading."""
+        with contextlib.suppress(OSError):
+            self.sock.shutdown(socket.SHUT_RDWR)
+        self.sock.close()
+        self.join(GRACE_S)
+
+
+def merged_log(run_log: Path, truth_log: Path, out: Path) -> Path:
+    """The daemon's sensor log with the simulator's truth events, sorted by arrival time."""
+    run = logfile.read_log(run_log)
+    truth = [e for e in logfile.read_log(truth_log).events if isinstance(e, logfile.Truth)]
+    events = sorted([*run.events, *truth], key=lambda e: e.t)  # stable: same-time events keep their order
+    with out.open("w", encoding="utf-8") as stream:
+        writer = logfile.LogWriter(stream, logfile.Meta(run.meta.robot, "robotd demo: daemon log + vhw truth"))
+        for event in events:
+            writer.write(event)
+    return out
+
+
+def _progress(out: TextIO, started: float, legs: list[Leg]) -> Callable[[Leg], None]:
+    index = 0
+
+    def report(leg: Leg) -> None:
+        nonlocal index
+        index += 1
+        what = "stop" if leg.twist == Twist(0.0, 0.0, 0.0) else f"vx {leg.twist.vx:+.2f} vy {leg.twist.vy:+.2f}"
+        out.write(f"\rrobotd demo: {time.monotonic() - started:5.1f} s, leg {index}/{len(legs)}: {what:24s}")
+        out.flush()
+
+    return report
+
+
+@contextlib.contextmanager
+def running_robot(config_path: Path, out: Path, seed: int | None) -> Iterator[tuple[Children, PoseRecorder]]:
+    """The virtual robot and the daemon running, with a pose recorder attached; all stopped on exit."""
+    config = load(config_path)
+    children = Children()
+    recorder: PoseRecorder | None = None
+    try:
+        seed_args = [] if seed is None else ["--seed", str(seed)]
+        children.start("robotd vhw", ["vhw", "--config", str(config_path), *seed_args], out / "vhw.log")
+        _wait_for(lambda: Path(config.marvelmind.device).exists(), 20.0, "the virtual robot", children)
+        children.start(
+            "robotd run",
+            ["run", "--config", str(config_path), "--record", str(out / "run.jsonl")],
+            out / "daemon.log",
+        )
+        _wait_for(lambda: Path(config.pose_socket.path).exists(), 20.0, "the daemon's pose socket", children)
+        recorder = PoseRecorder(Path(config.pose_socket.path), out / "poses.jsonl")
+        recorder.start()
+        _wait_for(lambda: recorder is not None and recorder.count > 0, 10.0, "the first pose", children)
+        yield children, recorder
+    finally:
+        children.stop_all()
+        if recorder is not None:
+            recorder.close()
+
+
+def drive(config_path: Path, plan: DemoPlan, out: TextIO) -> None:
+    """Drive the square through the UDP teleop client, open-loop."""
+    config: RobotdConfig = load(config_path)
+    legs = square_plan(plan.side_m, plan.speed_mps, plan.loops, plan.pause_s)
+    legs.append(Leg(Twist(0.0, 0.0, 0.0), 1.5))  # come to rest before the end
+    link = UdpLink("127.0.0.1", config.teleop.port, None)
+    try:
+        run_plan(link, legs, 20.0, report=_progress(out, time.monotonic(), legs))
+    finally:
+        link.close()
+    out.write("\n")
+
+
+def run_demo(base_config: Path, out_dir: Path, plan: DemoPlan, out: TextIO = sys.stdout) -> dict[str, Any]:
+    """Run the whole demo; returns the metrics and writes figures and table into `out_dir`."""
+    from robotd.demo_report import report  # noqa: PLC0415 - plotting is only needed at the end
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    config_path = private_config(base_config, out_dir.resolve())
+    started = time.monotonic()
+    with running_robot(config_path, out_dir, plan.seed) as (children, _recorder):
+        out.write(f"robotd demo: virtual robot and daemon up in {time.monotonic() - started:.1f} s; driving\n")
+        drive(config_path, plan, out)
+        daemon = children.procs[-1]
+        status = children.stop(daemon)
+        if status != 0:
+            raise RuntimeError(f"the daemon exited with status {status}: see {out_dir / 'daemon.log'}")
+    merged = merged_log(out_dir / "run.jsonl", out_dir / "truth.jsonl", out_dir / "log.jsonl")
+    metrics = report(merged, out_dir / "poses.jsonl", out_dir, load(config_path), out)
+    out.write(f"robotd demo: done in {time.monotonic() - started:.1f} s; results in {out_dir}\n")
+    return metrics
