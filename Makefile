@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint clean readme-config
+.PHONY: demo test lint clean readme
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,8 +25,8 @@ lint: $(STAMP)
 test: lint
 	$(BIN)/pytest
 
-readme-config: $(STAMP)
-	$(BIN)/robotd config-reference --update README.md
+readme: $(STAMP)
+	$(BIN)/robotd readme README.md
 
 clean:
 	rm -rf $(VENV)

@@ -3,12 +3,45 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import io
 import json
+import os
+import platform
 import sys
+import time
 from types import ModuleType
+from typing import TextIO
 
 from robotd.bench import BENCHMARK_MODULES
+
+
+class _Tee(io.TextIOBase):
+    """Writes through to a stream and keeps a copy."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self._stream = stream
+        self._copy = io.StringIO()
+
+    def write(self, text: str) -> int:
+        self._stream.write(text)
+        self._stream.flush()
+        return self._copy.write(text)
+
+    def text(self) -> str:
+        """Everything written so far."""
+        return self._copy.getvalue()
+
+
+def _report(printed: dict[str, str], modules: dict[str, ModuleType], *, quick: bool) -> str:
+    """The Markdown benchmark report: the machine, then what each benchmark printed, verbatim."""
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()}"
+    lines = [f"Measured by `robotd bench{' --quick' if quick else ''}` on {machine}, {time.strftime('%Y-%m-%d')}.", ""]
+    for name, text in printed.items():
+        doc = (modules[name].__doc__ or "").strip().splitlines()[0]
+        lines += [f"**`robotd bench {name}`**: {doc}", "", "```", text.rstrip(), "```", ""]
+    return "\n".join(lines)
 
 
 def _modules() -> dict[str, ModuleType]:
@@ -23,6 +56,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     bench.add_argument("--list", action="store_true", help="list the benchmarks and exit")
     bench.add_argument("--quick", action="store_true", help="small workloads: a smoke test, not a measurement")
     bench.add_argument("--json", metavar="PATH", help="also write every figure to this JSON file")
+    bench.add_argument(
+        "--report", metavar="PATH", help="also write what each benchmark printed as Markdown (docs/bench.md)"
+    )
     bench.set_defaults(handler=run_benchmarks)
 
 
@@ -41,9 +77,16 @@ def run_benchmarks(args: argparse.Namespace) -> int:
         )
         return 2
     figures: dict[str, dict[str, float]] = {}
+    printed: dict[str, str] = {}
     for name in args.names or list(modules):
         print(f"== {name}", flush=True)
-        figures[name] = modules[name].run(quick=args.quick)
+        capture = _Tee(sys.stdout)
+        with contextlib.redirect_stdout(capture):
+            figures[name] = modules[name].run(quick=args.quick)
+        printed[name] = capture.text()
+    if args.report:
+        with open(args.report, "w", encoding="utf-8") as out:
+            out.write(_report(printed, modules, quick=args.quick))
     if args.json:
         with open(args.json, "w", encoding="utf-8") as out:
             json.dump(figures, out, indent=2)

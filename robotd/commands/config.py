@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from robotd.config import config_reference, load
+from robotd.readme import current
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -15,8 +16,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     check.add_argument("path", help="YAML configuration file")
     check.set_defaults(handler=check_config)
     ref = subparsers.add_parser("config-reference", help="print the Markdown reference of every configuration key")
-    ref.add_argument("--update", metavar="README", help="rewrite the reference between the markers of this file")
     ref.set_defaults(handler=print_reference)
+    readme = subparsers.add_parser("readme", help="bring the README's generated blocks up to date (or --check them)")
+    readme.add_argument("path", nargs="?", default="README.md", help="the README (default README.md)")
+    readme.add_argument("--check", action="store_true", help="exit 1 when a block is stale, change nothing")
+    readme.set_defaults(handler=update_readme)
 
 
 def check_config(args: argparse.Namespace) -> int:
@@ -26,20 +30,25 @@ def check_config(args: argparse.Namespace) -> int:
     return 0
 
 
-START, END = "<!-- config-reference:start -->", "<!-- config-reference:end -->"
+def print_reference(_args: argparse.Namespace) -> int:
+    """Print the configuration reference."""
+    print(config_reference(), end="")
+    return 0
 
 
-def print_reference(args: argparse.Namespace) -> int:
-    """Print the configuration reference, or splice it into a Markdown file between its markers."""
-    if not args.update:
-        print(config_reference(), end="")
-        return 0
-    path = Path(args.update)
+def update_readme(args: argparse.Namespace) -> int:
+    """Rewrite (or check) the generated blocks of the README from their sources."""
+    path = Path(args.path)
     text = path.read_text(encoding="utf-8")
-    head, start, rest = text.partition(START)
-    _, end, tail = rest.partition(END)
-    if not start or not end:
-        print(f"robotd: {path} has no {START} ... {END} markers", file=sys.stderr)
+    try:
+        fresh = current(text, path.resolve().parent)
+    except ValueError as error:
+        print(f"robotd readme: {path}: {error}", file=sys.stderr)
         return 1
-    path.write_text(f"{head}{START}\n{config_reference()}{END}{tail}", encoding="utf-8")
+    if args.check:
+        if fresh != text:
+            print(f"robotd readme: {path} is stale: run `robotd readme`", file=sys.stderr)
+            return 1
+        return 0
+    path.write_text(fresh, encoding="utf-8")
     return 0

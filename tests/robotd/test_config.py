@@ -220,7 +220,7 @@ def test_reference_lists_every_key_with_its_real_default() -> None:
 
 def test_readme_holds_the_current_reference() -> None:
     readme = (REPO / "README.md").read_text()
-    assert config_reference() in readme, "README is stale: run `make readme-config` (robotd config-reference)"
+    assert config_reference() in readme, "README is stale: run `make readme` (robotd readme)"
 
 
 def test_a_partial_wheel_section_keeps_that_wheels_other_pins() -> None:
