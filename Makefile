@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint clean readme
+.PHONY: demo docs test lint clean readme
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -14,8 +14,13 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/robotd check-config config/robot.yaml
-	$(BIN)/robotd check-config config/sim.yaml
+	$(BIN)/robotd demo --out out/demo
+
+# Regenerates the README's figures: the offline experiment, the benchmarks, then the README's generated blocks.
+docs: $(STAMP)
+	$(BIN)/robotd experiment square --loops 3 --seeds 10 --out docs/results --librsf ../shared/datasets/librsf_labyrinth_uwb
+	$(BIN)/robotd bench --report docs/bench.md --json docs/bench.json
+	$(BIN)/robotd readme README.md
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

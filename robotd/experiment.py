@@ -11,19 +11,19 @@ parallel experiment equals a serial one. A real-data run (the libRSF Labyrinth U
 from __future__ import annotations
 
 import io
-import math
 import multiprocessing
 import statistics
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from robotd import librsf, plots
 from robotd.config import RobotdConfig
-from robotd.logfile import Event, IpsFix, LogWriter, Meta, SensorLog, Truth, parse_lines
+from robotd.logfile import Event, LogWriter, Meta, SensorLog, Truth, parse_lines
 from robotd.metrics import ErrorStats, TruthTrack
 from robotd.replay import METHODS, ReplayResult, replay
 from robotd.replay import Track as ReplayTrack
@@ -117,7 +117,7 @@ def _plot_track(track: ReplayTrack) -> plots.Track:
 
 
 def figure_data(log: SensorLog, result: ReplayResult) -> FigureData:
-    """The tracks of a replayed log for the figures; fixes moved from the beacon to the robot's centre like the score."""
+    """The tracks of a replayed log for the figures; fixes moved from the beacon to the robot's centre, as scored."""
     samples = [(e.t, e.x, e.y, e.theta) for e in log.events if isinstance(e, Truth)]
     reference = TruthTrack.from_samples(samples)
     truth = plots.Track(reference.t, reference.x, reference.y, reference.theta)
@@ -141,10 +141,14 @@ def figure_data(log: SensorLog, result: ReplayResult) -> FigureData:
 def _worst_at(data: FigureData) -> float | None:
     """Time (from the first truth sample) of robotd's largest position error within the truth's span."""
     ekf = data.methods["ekf"]
-    inside = (ekf.t >= data.truth.t[0]) & (ekf.t <= data.truth.t[-1]) if len(data.truth.t) else ekf.t < -math.inf
+    if not len(data.truth.t):
+        return None
+    inside = (ekf.t >= data.truth.t[0]) & (ekf.t <= data.truth.t[-1])
     if not np.any(inside):
         return None
-    error = plots.position_error(plots.Track(ekf.t[inside], ekf.x[inside], ekf.y[inside], ekf.theta[inside]), data.truth)
+    error = plots.position_error(
+        plots.Track(ekf.t[inside], ekf.x[inside], ekf.y[inside], ekf.theta[inside]), data.truth
+    )
     return float(ekf.t[inside][int(np.argmax(error))] - data.truth.t[0])
 
 
@@ -155,13 +159,11 @@ def score_log(log: SensorLog, config: RobotdConfig, seed: int | None, keep_figur
         raise ValueError("the log has no ground truth to score against")
     data = figure_data(log, result)
     span = log.events[-1].t - log.events[0].t if log.events else 0.0
-    return Run(
-        seed, span, result.metrics, _worst_at(data), dict(result.counters), data if keep_figures else None
-    )
+    return Run(seed, span, result.metrics, _worst_at(data), dict(result.counters), data if keep_figures else None)
 
 
 def run_seed(
-    config: RobotdConfig, scenario: str, seed: int, loops: int, keep_figures: bool, log_path: Path | None = None
+    config: RobotdConfig, scenario: str, seed: int, loops: int, *, keep_figures: bool, log_path: Path | None = None
 ) -> Run:
     """Simulate one seed of the scenario, replay its log, score it; the log is written to log_path when given."""
     from drivers.sim.offline import simulate  # noqa: PLC0415 - the simulator is only needed to make data
@@ -186,16 +188,17 @@ def run_seeds(
     log_dir: Path | None = None,
 ) -> list[Run]:
     """Every seed's run, in the order of `seeds`; with workers > 1 they run in that many processes, same results."""
-    jobs = [
-        (config, scenario, seed, loops, seed in figure_seeds, None if log_dir is None else log_dir / f"seed{seed}.jsonl")
-        for seed in seeds
-    ]
-    if workers <= 1 or len(jobs) <= 1:
-        return [run_seed(*job) for job in jobs]
+
+    def options(seed: int) -> dict[str, Any]:
+        log_path = None if log_dir is None else log_dir / f"seed{seed}.jsonl"
+        return {"keep_figures": seed in figure_seeds, "log_path": log_path}
+
+    if workers <= 1 or len(seeds) <= 1:
+        return [run_seed(config, scenario, seed, loops, **options(seed)) for seed in seeds]
     # spawn, not fork: a forked child of a threaded parent (pytest, asyncio) may inherit a held lock
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=context) as pool:
-        futures = [pool.submit(run_seed, *job) for job in jobs]
+    with ProcessPoolExecutor(max_workers=min(workers, len(seeds)), mp_context=context) as pool:
+        futures = [pool.submit(run_seed, config, scenario, seed, loops, **options(seed)) for seed in seeds]
         return [future.result() for future in futures]
 
 

@@ -46,7 +46,7 @@ def _seeds_text(exp: Experiment) -> str:
 
 def _paper_max(method: str) -> str:
     if method == "ekf":
-        return f"{PAPER_MAX_M['paper_ekf']} (its EKF)"
+        return f"{PAPER_MAX_M['paper_ekf']} (paper's EKF)"
     return str(PAPER_MAX_M[method])
 
 
@@ -82,7 +82,7 @@ def _verdict(exp: Experiment) -> list[str]:
         )
     misses = [(run.seed, run.target_misses()) for run in exp.runs]
     failing = [(seed, miss) for seed, miss in misses if miss]
-    target = f"robotd EKF max < {TARGET_MAX_M} m and RMSE < {TARGET_RMSE_M} m on every seed"
+    target = f"set for the square: robotd EKF max < {TARGET_MAX_M} m and RMSE < {TARGET_RMSE_M} m on every seed"
     if failing:
         detail = "; ".join(f"seed {seed}: {', '.join(miss)}" for seed, miss in failing)
         lines.append(f"Targets ({target}): missed on {len(failing)} of {len(misses)} seeds ({detail}).")
@@ -105,12 +105,16 @@ def _real_data(exp: Experiment) -> list[str]:
     if exp.real is None:
         return [*lines, f"Not run: {exp.real_note}."]
     lines += [
-        f"One real run ({exp.real.duration_s:.1f} s) of a small differential-drive robot in a labyrinth: wheel speeds, "
-        "fixes multilaterated from real UWB ranges, 2D ground truth without heading. Same filters and configuration; "
-        "the paper's maxima do not apply to this data.",
+        (
+            f"One real run ({exp.real.duration_s:.1f} s) of a small differential-drive robot in a labyrinth: wheel "
+            "speeds, fixes multilaterated from real UWB ranges, 2D ground truth without heading. Same filters and "
+            "configuration; the paper's maxima do not apply to this data."
+        ),
         "",
-        "Data: libRSF Labyrinth indoor UWB dataset, CC BY-SA 4.0, © Tim Pfeifer, TU Chemnitz "
-        "(github.com/TUC-ProAut/libRSF, datasets/Indoor_UWB).",
+        (
+            "Data: libRSF Labyrinth indoor UWB dataset, CC BY-SA 4.0, © Tim Pfeifer, TU Chemnitz "
+            "(github.com/TUC-ProAut/libRSF, datasets/Indoor_UWB)."
+        ),
         "",
         "| method (real data) | RMSE (m) | max (m) | final (m) |",
         "|---|--:|--:|--:|",
@@ -125,8 +129,10 @@ def _per_seed(exp: Experiment) -> list[str]:
     lines = [
         "### Every seed",
         "",
-        "| seed | odometry max (m) | fixes max (m) | paper's EKF RMSE / max (m) | robotd EKF RMSE / max / final (m) "
-        "| robotd EKF worst at (s) | targets |",
+        (
+            "| seed | odometry max (m) | fixes max (m) | paper's EKF RMSE / max (m) "
+            "| robotd EKF RMSE / max / final (m) | robotd EKF worst at (s) | targets |"
+        ),
         "|--:|--:|--:|--:|--:|--:|---|",
     ]
     for run in exp.runs:
@@ -146,7 +152,12 @@ def _per_seed(exp: Experiment) -> list[str]:
 
 
 def _every_metric(exp: Experiment) -> list[str]:
-    lines = ["### Every metric over the seeds", "", "| method | metric | mean | std | min | max |", "|---|---|--:|--:|--:|--:|"]
+    lines = [
+        "### Every metric over the seeds",
+        "",
+        "| method | metric | mean | std | min | max |",
+        "|---|---|--:|--:|--:|--:|",
+    ]
     for method in METHODS:
         for metric, spread in exp.summary.get(method, {}).items():
             digits = 2 if metric.endswith("_deg") else 3
@@ -161,10 +172,12 @@ def results_markdown(exp: Experiment) -> str:
     lines = [
         f"## Experiment: {exp.scenario}, {_loops(exp.loops)}, {_seeds_text(exp)}",
         "",
-        f"The virtual robot{config}, simulated offline through `robotd simulate` and `robotd replay`. Position error "
-        "against ground truth, mean ± sample standard deviation over the seeds; *worst max* is the largest "
-        "maximum of any seed. Estimates are causal (each uses only the data that had arrived). The paper's figures "
-        "are the largest errors it reports for its 3 m square (section IV).",
+        (
+            f"The virtual robot{config}, simulated offline through `robotd simulate` and `robotd replay`. Position "
+            "error against ground truth, mean ± sample standard deviation over the seeds; *worst max* is the largest "
+            "maximum of any seed. Estimates are causal (each uses only the data that had arrived). The paper's "
+            "figures are the largest errors it reports for its 3 m square (section IV)."
+        ),
         "",
         *_summary_table(exp),
         "",

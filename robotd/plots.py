@@ -101,7 +101,13 @@ def _off_scale_note(ax: Any, series: Mapping[str, FloatArray], limit: float, uni
             notes.append(f"{label} off scale, up to {float(finite.max()):.{2 if unit == 'm' else 0}f} {unit}")
     if notes:
         ax.text(
-            0.99, 0.97, "\n".join(notes), transform=ax.transAxes, ha="right", va="top", fontsize=8,
+            0.99,
+            0.97,
+            "\n".join(notes),
+            transform=ax.transAxes,
+            ha="right",
+            va="top",
+            fontsize=8,
             bbox={"facecolor": "white", "edgecolor": "none", "alpha": 0.8},
         )
 

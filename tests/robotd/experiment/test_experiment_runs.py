@@ -12,7 +12,7 @@ import pytest
 
 from robotd import cli
 from robotd.config import RobotdConfig, load
-from robotd.experiment import PAPER_MAX_M, METRICS, Experiment, run_experiment, run_seeds
+from robotd.experiment import METRICS, PAPER_MAX_M, Experiment, run_experiment, run_seeds
 from robotd.experiment_report import LABELS, results_markdown, write_results
 from robotd.logfile import read_log
 from robotd.metrics import ErrorStats
@@ -42,7 +42,18 @@ def independent(config: RobotdConfig, tmp_path_factory: pytest.TempPathFactory) 
     per_seed = {}
     for seed in SEEDS:
         log = folder / f"seed{seed}.jsonl"
-        argv = ["simulate", "square", "--loops", "1", "--seed", str(seed), "--out", str(log), "--config", str(SIM_CONFIG)]
+        argv = [
+            "simulate",
+            "square",
+            "--loops",
+            "1",
+            "--seed",
+            str(seed),
+            "--out",
+            str(log),
+            "--config",
+            str(SIM_CONFIG),
+        ]
         assert cli.main(argv) == 0
         metrics = replay(read_log(log), config).metrics
         assert metrics is not None
