@@ -101,7 +101,7 @@ def _stats_cells(stats: ErrorStats | None, with_heading: bool) -> list[str]:
 
 
 def _real_data(exp: Experiment) -> list[str]:
-    lines = ["### Real data: the libRSF Labyrinth UWB run", ""]
+    lines = ["#### Real data: the libRSF Labyrinth UWB run", ""]
     if exp.real is None:
         return [*lines, f"Not run: {exp.real_note}."]
     lines += [
@@ -127,7 +127,7 @@ def _real_data(exp: Experiment) -> list[str]:
 
 def _per_seed(exp: Experiment) -> list[str]:
     lines = [
-        "### Every seed",
+        "#### Every seed",
         "",
         (
             "| seed | odometry max (m) | fixes max (m) | paper's EKF RMSE / max (m) "
@@ -153,7 +153,7 @@ def _per_seed(exp: Experiment) -> list[str]:
 
 def _every_metric(exp: Experiment) -> list[str]:
     lines = [
-        "### Every metric over the seeds",
+        "#### Every metric over the seeds",
         "",
         "| method | metric | mean | std | min | max |",
         "|---|---|--:|--:|--:|--:|",
@@ -170,7 +170,7 @@ def results_markdown(exp: Experiment) -> str:
     """The results page: the summary table beside the paper's maxima, the targets, real data, every seed."""
     config = f" (`{exp.config_name}`)" if exp.config_name else ""
     lines = [
-        f"## Experiment: {exp.scenario}, {_loops(exp.loops)}, {_seeds_text(exp)}",
+        f"### Experiment: {exp.scenario}, {_loops(exp.loops)}, {_seeds_text(exp)}",
         "",
         (
             f"The virtual robot{config}, simulated offline through `robotd simulate` and `robotd replay`. Position "

@@ -49,6 +49,7 @@ class LiveRun:
     illegal: tuple[int, ...] = ()
     lost_reports: int = 0
     fixes: list[Position | FixUnavailable] = field(default_factory=list)
+    late_s: float = 0.0  # control steps taken later than their period, summed: the live run's timing jitter
 
 
 def _free_port() -> int:
@@ -105,7 +106,8 @@ async def _drive(live: LiveRun) -> None:
                     next_command += 1.0 / config.sim.teleop_rate_hz
                 motors.set_duties(controller.step(now, command, command_time, latest[-1].speeds_rad_s))
                 await asyncio.sleep(1.0 / config.control.rate_hz)
-                now = loop.time()
+                previous, now = now, loop.time()
+                live.late_s += max(0.0, now - previous - 1.0 / config.control.rate_hz - 0.002)
         finally:
             motors.close()
         await asyncio.sleep(0.6)  # the robot coasts to rest and its last edges arrive
@@ -191,7 +193,10 @@ def test_offline_and_live_runs_of_the_same_scenario_and_seed_agree(live_run: Liv
     assert len(gaps) > 200
     final_live, final_offline = live_truth[-1], offline_truth[-1]
     assert math.hypot(final_offline.x, final_offline.y) > 0.5  # the robot went somewhere
-    # Live timing jitter (the control loop's sleeps, one 5 ms step of duty latency) shifts the path by millimetres.
-    assert max(gaps) < 0.02
-    assert math.hypot(final_live.x - final_offline.x, final_live.y - final_offline.y) < 0.02
+    # Live timing jitter (the control loop's sleeps, one 5 ms step of duty latency) shifts the path by millimetres on
+    # an idle machine; on a loaded one each late control step holds the old duty for longer, so the bound grows by
+    # the distance the robot covers at top speed during the time the steps were late.
+    tolerance = 0.02 + 0.5 * live_run.late_s
+    assert max(gaps) < tolerance
+    assert math.hypot(final_live.x - final_offline.x, final_live.y - final_offline.y) < tolerance
     assert final_live.theta == pytest.approx(final_offline.theta, abs=0.02)
