@@ -119,6 +119,37 @@ def predict(  # noqa: PLR0917 - the paper's symbols as plain floats: no packing 
     return x + dx, y + dy, wrap_angle(theta + wz * dt), p_new
 
 
+def predict_with_noise(  # noqa: PLR0917 - as predict
+    x: float, y: float, theta: float, p: Cov, vx: float, vy: float, dt: float, noise: ControlNoise, wz: float
+) -> tuple[float, float, Cov]:
+    """x, y and P of predict(x, y, theta, p, vx, vy, 0, dt, process_noise(theta, vx, vy, wz, dt, noise)), dt > 0.
+
+    The same arithmetic in one call (the estimator's hot path): cos and sin of theta once, no intermediate Q tuple.
+    The heading is the caller's: it integrates it over dt itself (the midpoint rule needs theta at mid-step here).
+    """
+    c, s = math.cos(theta), math.sin(theta)
+    speed = math.hypot(vx, vy)
+    inv_dt = 1.0 / dt
+    m_vx = noise.lin2 * speed * inv_dt + noise.rel2 * vx * vx + noise.const_v2
+    m_vy = noise.lat2 * speed * inv_dt + noise.rel2 * vy * vy + noise.const_v2
+    m_wz = (noise.slip2 * speed + noise.turn2 * abs(wz)) * inv_dt + noise.rel2 * wz * wz + noise.const_w2
+    dt2 = dt * dt
+    dx = (vx * c - vy * s) * dt  # eq. 5
+    dy = (vx * s + vy * c) * dt
+    a = -dy  # eq. 6
+    b = dx
+    xx, xy, xt, yy, yt, tt = p
+    p_new = (  # eq. 7 with Q = G M G^T (whose theta cross terms are zero)
+        xx + 2.0 * a * xt + a * a * tt + dt2 * (c * c * m_vx + s * s * m_vy),
+        xy + a * yt + b * xt + a * b * tt + dt2 * c * s * (m_vx - m_vy),
+        xt + a * tt + 0.0,
+        yy + 2.0 * b * yt + b * b * tt + dt2 * (s * s * m_vx + c * c * m_vy),
+        yt + b * tt + 0.0,
+        tt + dt2 * m_wz,
+    )
+    return x + dx, y + dy, p_new
+
+
 @dataclass(frozen=True, slots=True)
 class Innovation:
     """What an IPS fix says against the prediction: nu = z - h(s), S = H P H^T + R, NIS = nu^T S^-1 nu."""
@@ -206,6 +237,7 @@ __all__ = [
     "cov_full",
     "innovation",
     "predict",
+    "predict_with_noise",
     "process_noise",
     "update",
     "wrap_angle",

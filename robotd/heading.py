@@ -106,22 +106,25 @@ def fit_rotation(points: list[AlignPoint], tolerance: float) -> tuple[float, flo
         n = len(use)
         if n < 5:
             return None
-        mzx = sum(p.zx for p in use) / n
-        mzy = sum(p.zy for p in use) / n
-        mox = sum(p.ox for p in use) / n
-        moy = sum(p.oy for p in use) / n
+        zxs, zys = [p.zx for p in use], [p.zy for p in use]
+        oxs, oys = [p.ox for p in use], [p.oy for p in use]
+        mzx, mzy, mox, moy = sum(zxs) / n, sum(zys) / n, sum(oxs) / n, sum(oys) / n
         dot = cross = spread = 0.0
-        for p in use:
-            ox, oy, zx, zy = p.ox - mox, p.oy - moy, p.zx - mzx, p.zy - mzy
+        for pox, poy, pzx, pzy in zip(oxs, oys, zxs, zys, strict=True):
+            ox, oy, zx, zy = pox - mox, poy - moy, pzx - mzx, pzy - mzy
             dot += ox * zx + oy * zy
             cross += ox * zy - oy * zx
             spread += ox * ox + oy * oy
         rotation = math.atan2(cross, dot)
         c, s = math.cos(rotation), math.sin(rotation)
         tx, ty = mzx - (mox * c - moy * s), mzy - (mox * s + moy * c)
-        residuals = [math.hypot(p.zx - (tx + p.ox * c - p.oy * s), p.zy - (ty + p.ox * s + p.oy * c)) for p in use]
+        residuals = [
+            math.hypot(pzx - (tx + pox * c - poy * s), pzy - (ty + pox * s + poy * c))
+            for pox, poy, pzx, pzy in zip(oxs, oys, zxs, zys, strict=True)
+        ]
         median = sorted(residuals)[len(residuals) // 2]
-        keep = [p for p, e in zip(use, residuals, strict=True) if e <= max(3.0 * median, tolerance)]
+        bound = max(3.0 * median, tolerance)
+        keep = [p for p, e in zip(use, residuals, strict=True) if e <= bound]
         if len(keep) == len(use):
             break
         use = keep

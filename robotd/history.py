@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from robotd import ekf
 
 Twist3 = tuple[float, float, float]
+TWO_PI = ekf.TWO_PI
 TRIM_MIN_ENTRIES = 64  # trimming is amortised: a few dozen entries are cheaper to keep than to cut one by one
 
 
@@ -47,9 +48,9 @@ class Predictor:
             return Entry(t, prev.x, prev.y, prev.theta, prev.p, u, None, None)
         vx, vy, wz = u
         th = prev.theta + 0.5 * wz * dt if self.midpoint else prev.theta
-        q = ekf.process_noise(th, vx, vy, wz, dt, self.noise)
-        x, y, _, p = ekf.predict(prev.x, prev.y, th, prev.p, vx, vy, 0.0, dt, q)
-        return Entry(t, x, y, ekf.wrap_angle(prev.theta + wz * dt), p, u, None, None)
+        x, y, p = ekf.predict_with_noise(prev.x, prev.y, th, prev.p, vx, vy, dt, self.noise, wz)
+        theta = (prev.theta + wz * dt + math.pi) % TWO_PI - math.pi  # ekf.wrap_angle, inlined
+        return Entry(t, x, y, theta, p, u, None, None)
 
 
 class History:

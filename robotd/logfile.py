@@ -16,6 +16,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
+import numpy as np
+import numpy.typing as npt
+
+from robotd import logbulk
+
 FORMAT = "robotd-log"
 VERSION = 1
 
@@ -154,14 +159,116 @@ class LogWriter:
         self._stream.flush()
 
 
-@dataclass(slots=True)
-class SensorLog:
-    """A parsed log: its meta, its events in file order, and what could not be used."""
+@dataclass(frozen=True, slots=True)
+class Columns:
+    """A log's events as columns: wheel samples and truth as arrays, the rest as objects, and their file order.
 
-    meta: Meta = field(default_factory=Meta)
-    events: list[Event] = field(default_factory=list)
-    problems: list[str] = field(default_factory=list)
-    unknown_types: Counter[str] = field(default_factory=Counter)
+    `kinds` holds, per event in file order, WHEELS_KIND, TRUTH_KIND or OTHER_KIND; the n-th event of a kind is row n
+    of its column (or others[n]).
+    """
+
+    kinds: npt.NDArray[np.int8]
+    wheels_t: npt.NDArray[np.float64]
+    wheels_ticks: npt.NDArray[np.int64]  # n x 4, FL FR RL RR
+    truth: npt.NDArray[np.float64]  # n x 4: t, x, y, theta (NaN when the line had none)
+    others: list[Event]
+
+    def others_after(self) -> npt.NDArray[np.int64]:
+        """For each of `others`, how many wheel samples come before it in the file."""
+        wheels_before = np.cumsum(self.kinds == WHEELS_KIND) if len(self.kinds) else np.zeros(0, dtype=np.int64)
+        return wheels_before[self.kinds == OTHER_KIND].astype(np.int64)
+
+    def __len__(self) -> int:
+        return len(self.kinds)
+
+    def time_span(self) -> tuple[float, float]:
+        """The times of the first and of the last event in the file (a log without events has none: ValueError)."""
+        if not len(self.kinds):
+            raise ValueError("no events")
+        return self._time_of(0), self._time_of(len(self.kinds) - 1)
+
+    def _time_of(self, position: int) -> float:
+        kind = int(self.kinds[position])
+        rank = int(np.count_nonzero(self.kinds[: position + 1] == kind)) - 1
+        if kind == WHEELS_KIND:
+            return float(self.wheels_t[rank])
+        if kind == TRUTH_KIND:
+            return float(self.truth[rank, 0])
+        return self.others[rank].t
+
+    def events(self) -> list[Event]:
+        """The events as objects, in file order."""
+        wheels = iter(
+            [Wheels(t, (a, b, c, d)) for t, (a, b, c, d) in zip(self.wheels_t.tolist(), self.wheels_ticks.tolist())]
+        )
+        truth = iter([Truth(t, x, y, th) for t, x, y, th in self.truth.tolist()])
+        others = iter(self.others)
+        sources = {WHEELS_KIND: wheels, TRUTH_KIND: truth, OTHER_KIND: others}
+        return [next(sources[kind]) for kind in self.kinds.tolist()]
+
+    @classmethod
+    def from_events(cls, events: list[Event]) -> Columns:
+        """The columns of a list of events."""
+        kinds = [WHEELS_KIND if type(e) is Wheels else TRUTH_KIND if type(e) is Truth else OTHER_KIND for e in events]
+        wheels = [e for e in events if type(e) is Wheels]
+        truth = [e for e in events if type(e) is Truth]
+        return cls(
+            np.array(kinds, dtype=np.int8),
+            np.array([e.t for e in wheels], dtype=np.float64),
+            np.array([e.ticks for e in wheels], dtype=np.int64).reshape(-1, 4),
+            np.array([(e.t, e.x, e.y, e.theta) for e in truth], dtype=np.float64).reshape(-1, 4),
+            [e for e in events if type(e) is not Wheels and type(e) is not Truth],
+        )
+
+
+WHEELS_KIND, TRUTH_KIND, OTHER_KIND = 1, 2, 0
+
+
+class SensorLog:
+    """A parsed log: its meta, its events in file order, and what could not be used.
+
+    The events are held as objects (`events`) or as columns (`columns()`, what replay reads); each view is built from
+    the other on first use.
+    """
+
+    __slots__ = ("_columns", "_events", "meta", "problems", "unknown_types")
+
+    def __init__(
+        self,
+        meta: Meta | None = None,
+        events: list[Event] | None = None,
+        problems: list[str] | None = None,
+        unknown_types: Counter[str] | None = None,
+        *,
+        columns: Columns | None = None,
+    ) -> None:
+        self.meta = meta if meta is not None else Meta()
+        self._events = events if events is not None or columns is not None else []
+        self._columns = columns
+        self.problems = problems if problems is not None else []
+        self.unknown_types = unknown_types if unknown_types is not None else Counter()
+
+    @property
+    def events(self) -> list[Event]:
+        """The events as objects, in file order."""
+        if self._events is None:
+            assert self._columns is not None
+            self._events = self._columns.events()
+            self._columns = None  # the list may now be edited: the columns would go stale
+        return self._events
+
+    @events.setter
+    def events(self, events: list[Event]) -> None:
+        self._events, self._columns = events, None
+
+    def columns(self) -> Columns:
+        """The events as columns (built from the objects when the log was made from them)."""
+        if self._columns is None:
+            return Columns.from_events(self.events)
+        return self._columns
+
+    def __repr__(self) -> str:
+        return f"SensorLog(meta={self.meta!r}, {len(self.columns().kinds)} events, problems={self.problems!r})"
 
 
 class _MalformedError(ValueError):
@@ -208,33 +315,136 @@ def _decode(obj: dict[str, Any]) -> Event | Meta | str:
     return Command(t, _float(obj, "vx"), _float(obj, "vy"), _float(obj, "wz"))
 
 
+def _parse_line(line: str) -> Event | Meta | str | None:
+    """One line through json.loads: an event, the meta, an unknown type's name, None when blank."""
+    if not line.strip():
+        return None
+    obj = json.loads(line)
+    if not isinstance(obj, dict):
+        raise _MalformedError("not a JSON object")
+    return _decode(obj)
+
+
 def parse_lines(lines: Iterable[str]) -> SensorLog:
     """Parse the lines of a sensor log; never raises on content."""
-    log = SensorLog()
-    for number, line in enumerate(lines, start=1):
-        if not line.strip():
-            continue
-        try:
-            obj = json.loads(line)
-            if not isinstance(obj, dict):
-                raise _MalformedError("not a JSON object")
-            item = _decode(obj)
-        except (json.JSONDecodeError, _MalformedError) as error:
-            log.problems.append(f"line {number}: {error}")
-            continue
-        if isinstance(item, str):
-            log.unknown_types[item] += 1
-        elif isinstance(item, Meta):
-            log.meta = item
-        else:
-            log.events.append(item)
-    return log
+    texts = list(lines)
+    stripped = [line[:-1] if line.endswith("\n") else line for line in texts]
+    return _parse(stripped, texts)
 
 
 def read_log(path: str | Path) -> SensorLog:
     """Read a sensor log file."""
     with open(path, encoding="utf-8", errors="replace") as stream:
-        return parse_lines(stream)
+        text = stream.read()
+    lines = text.split("\n")
+    if lines[-1] == "":
+        del lines[-1]
+        return _parse(lines, None, newline_on_last=True)
+    return _parse(lines, None, newline_on_last=False)
+
+
+def _parse(lines: list[str], originals: list[str] | None, *, newline_on_last: bool = False) -> SensorLog:
+    """Parse lines (without their newline): standard lines in bulk (robotd.logbulk), the rest one by one.
+
+    `originals` are the lines as given (for json.loads's error positions); None means each line had a newline,
+    except the last unless newline_on_last.
+    """
+    wheels_mark, truth_mark, ips_mark = (template.marker for template in logbulk.TEMPLATES)
+    kinds_list = [
+        WHEELS_KIND if wheels_mark in line else TRUTH_KIND if truth_mark in line else 3 if ips_mark in line else 4
+        for line in lines
+    ]
+    kinds = np.array(kinds_list, dtype=np.int8)
+    batches: dict[int, object] = {}
+    wheels_rows = np.flatnonzero(kinds == WHEELS_KIND)
+    wheels = logbulk.parse_wheels([lines[i] for i in wheels_rows.tolist()]) if len(wheels_rows) else None
+    if wheels is None:
+        kinds[wheels_rows] = 4
+    for kind, template in ((TRUTH_KIND, logbulk.TRUTH), (3, logbulk.IPS)):
+        rows = np.flatnonzero(kinds == kind)
+        batch = logbulk.parse_batch(template, [lines[i] for i in rows.tolist()])
+        if batch is None:
+            kinds[rows] = 4
+        else:
+            batches[kind] = batch
+    ips_rows = batches.get(3)
+    fixes = iter(
+        [IpsFix(t, x, y, z, m) for t, x, y, z, m in ips_rows.tolist()]  # type: ignore[attr-defined]
+        if ips_rows is not None
+        else []
+    )
+    log = SensorLog()
+    others: list[Event] = []
+    extra_wheels: list[tuple[int, Wheels]] = []  # wheel samples that came through the per-line reader
+    extra_truth: list[tuple[int, Truth]] = []
+    last = len(lines) - 1
+    for index in np.flatnonzero(kinds >= 3).tolist():
+        if kinds[index] == 3:
+            others.append(next(fixes))
+            kinds[index] = OTHER_KIND
+            continue
+        kinds[index] = -1  # dropped unless it decodes to an event
+        if originals is not None:
+            line = originals[index]
+        else:
+            line = lines[index] + "\n" if (index < last or newline_on_last) else lines[index]
+        try:
+            item = _parse_line(line)
+        except (json.JSONDecodeError, _MalformedError) as error:
+            log.problems.append(f"line {index + 1}: {error}")
+            continue
+        if item is None:
+            continue
+        if isinstance(item, str):
+            log.unknown_types[item] += 1
+        elif isinstance(item, Meta):
+            log.meta = item
+        elif isinstance(item, Wheels):
+            kinds[index] = WHEELS_KIND
+            extra_wheels.append((index, item))
+        elif isinstance(item, Truth):
+            kinds[index] = TRUTH_KIND
+            extra_truth.append((index, item))
+        else:
+            kinds[index] = OTHER_KIND
+            others.append(item)
+    wheels_t, wheels_ticks = wheels if wheels is not None else (np.zeros(0), np.zeros((0, 4), dtype=np.int64))
+    truth = batches.get(TRUTH_KIND)
+    truth_array = truth if isinstance(truth, np.ndarray) else np.zeros((0, 4))
+    if extra_wheels:  # merge them in file order
+        wheels_t, wheels_ticks = _merge(
+            kinds,
+            WHEELS_KIND,
+            [i for i, _ in extra_wheels],
+            (wheels_t, np.array([e.t for _, e in extra_wheels])),
+            (wheels_ticks, np.array([e.ticks for _, e in extra_wheels], dtype=np.int64)),
+        )
+    if extra_truth:
+        (truth_array,) = _merge(
+            kinds,
+            TRUTH_KIND,
+            [i for i, _ in extra_truth],
+            (truth_array, np.array([(e.t, e.x, e.y, e.theta) for _, e in extra_truth])),
+        )
+    kept = kinds[kinds >= 0]
+    log._events = None
+    log._columns = Columns(kept, wheels_t, wheels_ticks, truth_array, others)
+    return log
+
+
+def _merge(
+    kinds: npt.NDArray[np.int8], kind: int, extra_lines: list[int], *pairs: tuple[npt.NDArray[Any], npt.NDArray[Any]]
+) -> list[npt.NDArray[Any]]:
+    """Columns of a kind, bulk-parsed rows and per-line rows merged in file order."""
+    lines_of_kind = np.flatnonzero(kinds == kind)
+    from_extra = np.isin(lines_of_kind, np.array(extra_lines))
+    merged = []
+    for bulk, extra in pairs:
+        out = np.empty((len(lines_of_kind), *bulk.shape[1:]), dtype=bulk.dtype)
+        out[~from_extra] = bulk
+        out[from_extra] = extra
+        merged.append(out)
+    return merged
 
 
 def iter_events(log: SensorLog, *types: type[Event]) -> Iterator[Event]:

@@ -35,6 +35,16 @@ class TruthTrack:
             theta = np.unwrap(theta)
         return cls(arr[:, 0], arr[:, 1], arr[:, 2], theta)
 
+    @classmethod
+    def from_array(cls, samples: FloatArray) -> TruthTrack:
+        """From an n x 4 array of (t, x, y, theta) rows in any order: the same track as from_samples."""
+        arr = np.asarray(samples, dtype=np.float64).reshape(-1, 4)
+        arr = arr[np.lexsort((arr[:, 3], arr[:, 2], arr[:, 1], arr[:, 0]))]
+        theta = arr[:, 3]
+        if np.all(np.isfinite(theta)):
+            theta = np.unwrap(theta)
+        return cls(arr[:, 0], arr[:, 1], arr[:, 2], theta)
+
     @property
     def has_heading(self) -> bool:
         """Whether every sample has a heading."""

@@ -14,13 +14,17 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from robotd import kinematics
+import numpy as np
+
+from robotd import deadreckoning, kinematics
 from robotd.config import RobotdConfig
 from robotd.estimator import Diagnostics, Estimator, TrackState
-from robotd.logfile import IpsFix, IpsLost, SensorLog, Truth, TwistSample, Wheels
+from robotd.logfile import IpsFix, IpsLost, SensorLog, TwistSample
 from robotd.metrics import ErrorStats, TruthTrack, fit_rotation, score, score_fixes
 
 OUTPUT_PERIOD_S = 0.05
+# one estimates.jsonl line: {"t", "x", "y", "theta", "cov"} (cov 3x3 row-major); one % per line is the fastest writer
+ESTIMATE_LINE = '{"t": %.6f, "x": %.6f, "y": %.6f, "theta": %.6f, "cov": [' + ", ".join(["%.9g"] * 9) + "]}\n"
 METHODS = ("odometry", "ips", "paper_ekf", "ekf")
 
 
@@ -99,52 +103,94 @@ def _record(track: Track, t: float, est: Estimator, filtered: bool) -> None:
 
 
 def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
-    """Run the three methods over a parsed log and score them when it holds truth."""
+    """Run the three methods over a parsed log and score them when it holds truth.
+
+    The log is read as columns (SensorLog.columns): wheel samples reach the filters in runs between the other
+    events (Estimator.on_wheel_samples), the same inputs in the same order as one on_wheels call each. Odometry alone
+    is computed for the whole log at once (robotd.deadreckoning) when its wheel times are clean and it has no twist
+    samples, and with a third Estimator otherwise.
+    """
     geometry, offset, cpr, problems = robot_from_log(log, config)
     robotd = Estimator(config.ekf, geometry, offset, cpr)
     paper = Estimator.paper_filter(config.ekf, geometry, cpr)
-    odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later
-    odometry = Estimator(odo_config, geometry, offset, cpr)
-    filters = (robotd, paper, odometry)
+    columns = log.columns()
+    times: list[float] = columns.wheels_t.tolist()
+    ticks: list[tuple[int, int, int, int]] = list(zip(*(column.tolist() for column in columns.wheels_ticks.T)))
+    others = columns.others
+    after: list[int] = columns.others_after().tolist()
+    vectorised = deadreckoning.applies(columns.wheels_t) and not any(type(e) is TwistSample for e in others)
+    odometry: Estimator | None = None
+    if not vectorised:
+        odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later
+        odometry = Estimator(odo_config, geometry, offset, cpr)
+    filters = (robotd, paper) if odometry is None else (robotd, paper, odometry)
     tracks = (Track(), Track(), Track())
+    odo_records: tuple[list[float], list[int]] = ([], [])  # record times and wheel samples before them
     fixes: list[tuple[float, float, float]] = []
-    truth: list[tuple[float, float, float, float]] = []
     diagnostics: list[Diagnostics] = []
     last_out = -math.inf
-    for event in log.events:
-        if isinstance(event, Wheels):
+    fed = 0  # wheel samples given to the filters
+
+    def record(t: float, samples: int) -> None:
+        for track, est in zip(tracks, filters, strict=False):
+            _record(track, t, est, est is not odometry)
+        if odometry is None:
+            odo_records[0].append(t)
+            odo_records[1].append(samples)
+
+    for index in range(len(others) + 1):
+        stop = after[index] if index < len(others) else len(times)
+        # the wheel samples before this event, with an output every OUTPUT_PERIOD_S of their times
+        for i in range(fed, stop):
+            if times[i] - last_out >= OUTPUT_PERIOD_S:
+                for est in filters:
+                    est.on_wheel_samples(times, ticks, fed, i + 1)
+                fed = i + 1
+                record(times[i], fed)
+                last_out = times[i]
+        if fed < stop:
             for est in filters:
-                est.on_wheels(event.t, event.ticks)
-        elif isinstance(event, IpsFix):
-            record = robotd.on_fix(event.t, event.x, event.y, event.t_meas)
-            if record is not None:
-                diagnostics.append(record)
+                est.on_wheel_samples(times, ticks, fed, stop)
+            fed = stop
+        if index == len(others):
+            break
+        event = others[index]
+        if type(event) is IpsFix:
+            diagnostic = robotd.on_fix(event.t, event.x, event.y, event.t_meas)
+            if diagnostic is not None:
+                diagnostics.append(diagnostic)
             paper.on_fix(event.t, event.x, event.y, event.t_meas)
             if math.isfinite(event.x) and math.isfinite(event.y) and math.isfinite(event.t_meas):
                 fixes.append((event.t_meas, event.x, event.y))
-            for track, est in zip(tracks, filters, strict=True):
-                _record(track, event.t, est, est is not odometry)
+            record(event.t, fed)
             last_out = event.t
-            continue
-        elif isinstance(event, TwistSample):
+        elif type(event) is TwistSample:
             for est in filters:
                 est.on_twist(event.t, event.vx, event.vy, event.wz)
-        elif isinstance(event, IpsLost):
+            if event.t - last_out >= OUTPUT_PERIOD_S:
+                record(event.t, fed)
+                last_out = event.t
+        elif type(event) is IpsLost:
             robotd.on_fix_lost(event.t)
             paper.on_fix_lost(event.t)
-            continue
-        elif isinstance(event, Truth):
-            truth.append((event.t, event.x, event.y, event.theta))
-            continue
-        else:
-            continue
-        if event.t - last_out >= OUTPUT_PERIOD_S:
-            for track, est in zip(tracks, filters, strict=True):
-                _record(track, event.t, est, est is not odometry)
-            last_out = event.t
+    if odometry is None:
+        record_t = np.array(odo_records[0], dtype=np.float64)
+        ox, oy, oth = deadreckoning.poses_at(
+            columns.wheels_t,
+            columns.wheels_ticks,
+            record_t,
+            np.array(odo_records[1], dtype=np.int64),
+            geometry,
+            cpr,
+            config.ekf.predict_period_s,
+        )
+        tracks[2].t.extend(odo_records[0])
+        tracks[2].x.extend(ox.tolist())
+        tracks[2].y.extend(oy.tolist())
+        tracks[2].theta.extend(oth.tolist())
     metrics = None
-    if truth:
-        reference = TruthTrack.from_samples(truth)
+    if len(columns.truth):
+        reference = TruthTrack.from_array(columns.truth)
         _place_odometry(tracks[2], reference)
         metrics = {
             "odometry": score(reference, tracks[2].t, tracks[2].x, tracks[2].y, tracks[2].theta),
@@ -207,9 +253,7 @@ def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
     e = result.ekf
     with open(written[0], "w", encoding="utf-8") as stream:
         stream.writelines(
-            '{"t": %.6f, "x": %.6f, "y": %.6f, "theta": %.6f, "cov": [%s]}\n'  # noqa: UP031 - fastest for 10^5 lines
-            % (e.t[i], e.x[i], e.y[i], e.theta[i], ", ".join("%.9g" % v for v in e.cov[i]))  # noqa: UP031
-            for i in range(len(e.t))
+            [ESTIMATE_LINE % (t, x, y, th, *cov) for t, x, y, th, cov in zip(e.t, e.x, e.y, e.theta, e.cov, strict=True)]
         )
     if result.metrics is not None:
         metrics = {name: (stats.as_dict() if stats is not None else None) for name, stats in result.metrics.items()}

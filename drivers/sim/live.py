@@ -7,7 +7,13 @@ configured sign), advances the physics with those duties held, through the same 
 and drives them in one batch, and writes the hedgehog packets that have arrived to the pseudo-terminal as frames,
 with the time-shift field set to their real latency at the moment of writing. The stationary beacons' frame goes out
 every `sim.beacons_period_s`. Ground truth, the counts the edges encode and the packets as written are recorded as a
-sensor log (monotonic clock) for the experiment tools: the daemon never sees it.
+sensor log (monotonic clock) for the experiment tools: the daemon never sees it. A packet's record carries the
+moment its frame was handed to the pseudo-terminal (the clock read just before the write), for latency measurements;
+the log is flushed after every step, so it can be read while the robot runs.
+
+Unplugging the beacon: SIGUSR1 closes the pseudo-terminal's master and removes the link (to the daemon, a USB device
+pulled out; packets produced meanwhile are unheard), SIGUSR2 plugs it back in: a new pseudo-terminal linked at the
+same configured path, as udev relinks a device that reappears. Each is ignored when already in that state.
 
 Not modelled beyond the offline simulator: edges are driven at the end of the step that produced them (up to one
 step late); the duties the daemon sets take effect at the next step.
@@ -59,6 +65,10 @@ class _Recorder:
         if self._writer is not None:
             self._writer.write(event)  # type: ignore[arg-type]
 
+    def flush(self) -> None:
+        if self._stream is not None:
+            self._stream.flush()
+
     def close(self) -> None:
         if self._stream is not None:
             self._stream.close()
@@ -68,9 +78,17 @@ class VirtualHardware:
     """The world stepped against a virtual pigpiod and a virtual Marvelmind (see the module docstring)."""
 
     def __init__(
-        self, config: RobotdConfig, seed: int, pigpiod: VirtualPigpiod, marvelmind: VirtualMarvelmind, start_s: float
+        self,
+        config: RobotdConfig,
+        seed: int,
+        pigpiod: VirtualPigpiod,
+        marvelmind: VirtualMarvelmind,
+        start_s: float,
+        *,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.config = config
+        self.clock = clock
         self.world: World = build_world(config, seed)
         self.pigpiod = pigpiod
         self.marvelmind = marvelmind
@@ -87,6 +105,7 @@ class VirtualHardware:
         self.next_truth_us = 0
         self.next_beacons_s = 0.0
         self.packets: list[HedgehogPacket] = []
+        self.retired: list[VirtualMarvelmind] = []  # pseudo-terminals unplugged so far (for their counters)
         self.records: list[object] = []
         # The encoders' lines start low (position 0 of the Gray cycle), before any client connects.
         pigpiod.drive_levels([self.base_tick & 0xFFFFFFFF], [0], self.encoder_mask)
@@ -153,9 +172,22 @@ class VirtualHardware:
         for packet in self.world.hedgehog.due(now):
             shift_ms = min(0xFFFF, round((now - packet.measured_s) * 1000.0))  # its real latency, as written
             sent = dataclasses.replace(packet, arrival_s=wall_s, time_shift_ms=shift_ms)
-            if self.marvelmind.write(position_frame(sent)):
+            frame = position_frame(sent)
+            written_s = self.clock()  # the frame enters the pseudo-terminal now: its record's arrival time
+            if self.marvelmind.write(frame):
                 self.packets.append(sent)
-                self.records.append(fix_event(sent, wall_s))
+                self.records.append(fix_event(sent, written_s))
+
+    def unplug(self) -> None:
+        """Pull the virtual Marvelmind out: close its pseudo-terminal (no-op when already out)."""
+        if self.marvelmind.is_open:
+            self.retired.append(self.marvelmind)
+            self.marvelmind.close()
+
+    def replug(self) -> None:
+        """Plug a virtual Marvelmind back in: a new pseudo-terminal at the same link (no-op when plugged in)."""
+        if not self.marvelmind.is_open:
+            self.marvelmind = VirtualMarvelmind(self.config.marvelmind.device)
 
 
 async def run_virtual_hardware(
@@ -180,7 +212,19 @@ async def run_virtual_hardware(
             loop.add_signal_handler(signum, stop.set)
             handled.append(signum)
     start = clock()
-    hardware = VirtualHardware(config, seed, pigpiod, marvelmind, start)
+    hardware = VirtualHardware(config, seed, pigpiod, marvelmind, start, clock=clock)
+
+    def plug(action: Callable[[], None], what: str) -> None:
+        action()
+        announce(f"robotd vhw: marvelmind {what}")
+
+    for signum, action, what in (
+        (signal.SIGUSR1, hardware.unplug, "unplugged"),
+        (signal.SIGUSR2, hardware.replug, "plugged in"),
+    ):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(signum, plug, action, what)
+            handled.append(signum)
     announce(f"robotd vhw: pigpiod {pigpiod.host}:{pigpiod.port}")
     announce(f"robotd vhw: marvelmind {marvelmind.slave_path} (linked at {config.marvelmind.device})")
     announce(f"robotd vhw: record {record_path or '(none)'}")
@@ -194,9 +238,11 @@ async def run_virtual_hardware(
                 break
             hardware.advance(round((now - start) * 1e6))
             hardware.send(now)
-            for record in hardware.records:
-                recorder.write(record)
-            hardware.records.clear()
+            if hardware.records:
+                for record in hardware.records:
+                    recorder.write(record)
+                hardware.records.clear()
+                recorder.flush()
             next_step = max(next_step + STEP_S, now)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), timeout=max(0.0, next_step - clock()))
@@ -204,10 +250,11 @@ async def run_virtual_hardware(
         for signum in handled:
             loop.remove_signal_handler(signum)
         recorder.close()
-        marvelmind.close()
+        hardware.marvelmind.close()
         await pigpiod.aclose()
+        ptys = [*hardware.retired, hardware.marvelmind]
         announce(
-            f"robotd vhw: stopped after {clock() - start:.1f} s; {marvelmind.frames_written} frames written, "
-            f"{marvelmind.frames_unheard} unheard; {pigpiod.reports_sent} encoder reports"
+            f"robotd vhw: stopped after {clock() - start:.1f} s; {sum(p.frames_written for p in ptys)} frames "
+            f"written, {sum(p.frames_unheard for p in ptys)} unheard; {pigpiod.reports_sent} encoder reports"
         )
     return hardware

@@ -9,4 +9,5 @@ BENCHMARK_MODULES: tuple[str, ...] = (
     "robotd.bench.ekf",
     "robotd.bench.marvelmind",
     "robotd.bench.sim",
+    "robotd.bench.daemon",
 )

@@ -1,0 +1,407 @@
+"""The daemon on the virtual robot: fix-to-pose and teleop-to-duty latency, CPU, memory, and a hostile UDP flood.
+
+Theory of operation. `robotd vhw` and `robotd run` run as child processes on a private copy of config/sim.yaml with
+fixes at 16 Hz. Five pose clients read the Unix socket from one thread that stamps each line on arrival.
+
+- Fix to pose: the vhw records the monotonic time just before it writes each frame to the pseudo-terminal; each
+  pose carries `fix_t`, the arrival of the newest fix given to the filter. A fix's latency is the first arrival, at
+  a client, of a pose with its `fix_t`, minus the write time of the last frame written before that `fix_t`.
+- Teleop to duty: from rest (duties exactly zero) one datagram with a new speed is sent, and the rear-right enable
+  pin (the last one the daemon writes) is polled with the real `pigpio` client until its duty is non-zero; the
+  figure is an upper bound (the end of the poll that saw the change).
+- CPU and memory of the daemon process from /proc/PID/stat and /proc/PID/status while driving at 0.5 m/s.
+- Flood: random and mutated datagrams (every one invalid by construction) sent to the teleop port, paced on the
+  socket's receive queue (/proc/net/udp) so the kernel drops none; every one must be counted as rejected, and the
+  control loop's period (from the status message) must not move.
+Baselines: the 5 ms latency target (p99), 10% of one core, 80 MB.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import random
+import selectors
+import socket
+import struct
+import subprocess
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from robotd.config import RobotdConfig, load
+from robotd.demo import Children, private_config
+from robotd.kinematics import Twist
+from robotd.teleop import DATAGRAM_SIZE, TAG_SIZE, TeleopSender
+from robotd.teleop_client import UdpLink
+
+NAME = "daemon"
+TARGET_LATENCY_S = 0.005
+TARGET_CPU_SHARE = 0.10
+TARGET_RSS_MB = 80.0
+POSE_CLIENTS = 5
+CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
+BENCH_OVERRIDES: dict[str, dict[str, Any]] = {"sim": {"ips_rate_hz": 16.0}, "pose_socket": {"status_rate_hz": 5.0}}
+
+
+# --- hostile datagrams --------------------------------------------------------------------------------------------
+
+
+def hostile_datagrams(rng: random.Random, count: int, now: Callable[[], float] = time.time) -> Iterator[bytes]:
+    """`count` datagrams the daemon must reject: random bytes, and valid ones broken in ways no check may miss."""
+    sender = TeleopSender(None)
+    for _ in range(count):
+        valid = bytearray(sender.command(Twist(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-2, 2)), now()))
+        kind = rng.randrange(8)
+        if kind == 0:  # noise of any length, never starting like a datagram
+            data = bytearray(rng.randbytes(rng.randrange(0, 2 * DATAGRAM_SIZE)))
+            if data[:3] == b"RBT":
+                data[0] ^= 0xFF
+        elif kind == 1:  # truncated or extended
+            cut = rng.randrange(0, DATAGRAM_SIZE)
+            data = valid[:cut] if rng.random() < 0.5 else valid + rng.randbytes(rng.randrange(1, 64))
+        elif kind == 2:  # a zero session, a reserved bit, or an unknown type
+            field = rng.randrange(3)
+            if field == 0:
+                valid[8:12] = b"\0\0\0\0"
+            elif field == 1:
+                valid[5 + rng.randrange(3)] |= 1 << rng.randrange(8)
+            else:
+                valid[4] = rng.choice([0, 3, 255])
+            data = valid
+        elif kind == 3:  # not a number where a velocity or the time belongs
+            offset = rng.choice([16, 24, 32, 40])
+            valid[offset : offset + 8] = struct.pack(">d", rng.choice([math.nan, math.inf, -math.inf]))
+            data = valid
+        elif kind == 4:  # a sender clock far from ours
+            valid[16:24] = struct.pack(">d", now() + rng.choice([-1, 1]) * rng.uniform(60.0, 1e6))
+            data = valid
+        elif kind == 5:  # another wire version
+            valid[3] = rng.choice([0, 2, 255])
+            data = valid
+        else:  # random bit flips anywhere, one of them in the tag: a keyless daemon takes only an all-zero tag
+            for _ in range(rng.randrange(0, 6)):
+                valid[rng.randrange(DATAGRAM_SIZE)] ^= 1 << rng.randrange(8)
+            valid[DATAGRAM_SIZE - TAG_SIZE + rng.randrange(TAG_SIZE)] |= 1 << rng.randrange(8)
+            data = valid
+        yield bytes(data)
+
+
+def udp_queue(port: int) -> tuple[int, int]:
+    """(bytes waiting, datagrams dropped) of the IPv4 UDP socket bound to `port`, from /proc/net/udp."""
+    for line in Path("/proc/net/udp").read_text(encoding="ascii").splitlines()[1:]:
+        fields = line.split()
+        if int(fields[1].split(":")[1], 16) == port and fields[2] == "00000000:0000":
+            return int(fields[4].split(":")[1], 16), int(fields[-1])
+    raise LookupError(f"no UDP socket bound to port {port}")
+
+
+def flood(port: int, datagrams: Iterator[bytes], max_queued_bytes: int = 64_000, burst: int = 32) -> int:
+    """Send every datagram to 127.0.0.1:`port`, waiting whenever the receiver's queue is long; returns the count."""
+    sent = 0
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.connect(("127.0.0.1", port))
+        for data in datagrams:
+            sock.send(data)
+            sent += 1
+            if sent % burst == 0:
+                while udp_queue(port)[0] > max_queued_bytes:
+                    time.sleep(0.0005)
+    return sent
+
+
+# --- the robot ------------------------------------------------------------------------------------------------------
+
+
+def bench_config(out: Path, overrides: dict[str, dict[str, Any]]) -> Path:
+    """A private copy of the simulation config with the benchmark's settings."""
+    path = private_config(CONFIG, out)
+    raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+    for section, values in overrides.items():
+        raw.setdefault(section, {}).update(values)
+    path.write_text(yaml.safe_dump(raw, sort_keys=False), encoding="utf-8")
+    load(path)
+    return path
+
+
+def _wait(condition: Callable[[], bool], timeout_s: float, what: str, procs: list[subprocess.Popen[str]]) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        for proc in procs:
+            if proc.poll() is not None:
+                raise RuntimeError(f"{proc.args!s} exited with {proc.returncode} while waiting for {what}")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"timed out waiting for {what}")
+        time.sleep(0.02)
+
+
+@contextlib.contextmanager
+def running(
+    config_path: Path, out: Path
+) -> Iterator[tuple[RobotdConfig, subprocess.Popen[str], subprocess.Popen[str]]]:
+    """`robotd vhw` and `robotd run` up (config, vhw, daemon); both stopped on the way out."""
+    config = load(config_path)
+    children = Children()
+    try:
+        vhw = children.start("robotd vhw", ["vhw", "--config", str(config_path)], out / "vhw.log")
+        _wait(lambda: Path(config.marvelmind.device).is_symlink(), 20.0, "the virtual robot", [vhw])
+        daemon = children.start("robotd run", ["run", "--config", str(config_path)], out / "daemon.log")
+        _wait(lambda: Path(config.pose_socket.path).exists(), 20.0, "the pose socket", [vhw, daemon])
+        yield config, vhw, daemon
+    finally:
+        children.stop_all()
+
+
+class PoseClients(threading.Thread):
+    """Several pose clients read by one thread; keeps each fix's first pose arrival, and the status messages."""
+
+    def __init__(self, path: str, count: int) -> None:
+        super().__init__(name="pose-clients", daemon=True)
+        self.selector = selectors.DefaultSelector()
+        self.socks = []
+        for _ in range(count):
+            sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            sock.connect(path)
+            sock.setblocking(False)
+            self.selector.register(sock, selectors.EVENT_READ, bytearray())
+            self.socks.append(sock)
+        self.first_pose_with_fix: dict[float, float] = {}  # fix_t -> first arrival at any client
+        self.statuses: list[dict[str, Any]] = []
+        self.running = True
+
+    def run(self) -> None:
+        """Read until closed."""
+        while self.running:
+            for key, _ in self.selector.select(0.1):
+                try:
+                    data = key.fileobj.recv(65536)  # type: ignore[union-attr]
+                except OSError:
+                    data = b""
+                arrived = time.monotonic()
+                if not data:
+                    self.selector.unregister(key.fileobj)
+                    continue
+                buffer: bytearray = key.data
+                buffer += data
+                *lines, rest = buffer.split(b"\n")
+                buffer[:] = rest
+                for line in lines:
+                    self._take(json.loads(line), arrived)
+
+    def _take(self, message: dict[str, Any], arrived: float) -> None:
+        if message["type"] == "pose" and message.get("fix_t") is not None:
+            self.first_pose_with_fix.setdefault(message["fix_t"], arrived)
+        elif message["type"] == "status":
+            self.statuses.append(message)
+
+    def close(self) -> None:
+        """Stop reading and hang up."""
+        self.running = False
+        self.join(2.0)
+        for sock in self.socks:
+            sock.close()
+        self.selector.close()
+
+
+# --- measurements ----------------------------------------------------------------------------------------------------
+
+
+def percentile(values: list[float], q: float) -> float:
+    """The q-quantile (nearest rank) of `values`; NaN when empty."""
+    if not values:
+        return math.nan
+    ordered = sorted(values)
+    return ordered[round(q * (len(ordered) - 1))]
+
+
+def frame_write_times(record_path: str) -> list[float]:
+    """When the vhw handed each position frame to the pseudo-terminal (from its record)."""
+    times = []
+    for line in Path(record_path).read_text(encoding="utf-8").splitlines():
+        event = json.loads(line)
+        if event.get("type") in ("ips", "ips_lost"):
+            times.append(float(event["t"]))
+    return sorted(times)
+
+
+def fix_latencies(first_pose_with_fix: dict[float, float], written: list[float]) -> list[float]:
+    """Seconds from each frame's write to the first pose containing its fix."""
+    import bisect  # noqa: PLC0415
+
+    latencies = []
+    for fix_t, arrived in first_pose_with_fix.items():
+        index = bisect.bisect_right(written, fix_t) - 1
+        if index >= 0 and fix_t - written[index] < 0.05:  # else: a frame the record has not (yet) got
+            latencies.append(arrived - written[index])
+    return latencies
+
+
+def cpu_seconds(pid: int) -> float:
+    """User plus system CPU time of a process so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text(encoding="ascii").rsplit(")", 1)[1].split()
+    ticks = int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15 of stat)
+    return ticks / float(_clock_ticks())
+
+
+def _clock_ticks() -> int:
+    import os  # noqa: PLC0415
+
+    return os.sysconf("SC_CLK_TCK")
+
+
+def memory_mb(pid: int) -> tuple[float, float]:
+    """(resident, peak resident) megabytes of a process."""
+    values = {}
+    for line in Path(f"/proc/{pid}/status").read_text(encoding="ascii").splitlines():
+        key, _, rest = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            values[key] = int(rest.split()[0]) / 1024.0
+    return values["VmRSS"], values["VmHWM"]
+
+
+def drive_back_and_forth(link: UdpLink, speed: float, duration_s: float, leg_s: float = 3.0) -> None:
+    """Teleop at 20 Hz: `speed` forward for a leg, then back, for `duration_s`."""
+    start = time.monotonic()
+    tick = 0
+    while (elapsed := time.monotonic() - start) < duration_s:
+        direction = 1.0 if int(elapsed / leg_s) % 2 == 0 else -1.0
+        link.send(Twist(direction * speed, 0.0, 0.0))
+        tick += 1
+        time.sleep(max(0.0, start + tick / 20.0 - time.monotonic()))
+
+
+def teleop_to_duty(link: UdpLink, pi: Any, enable_pins: list[int], samples: int) -> tuple[list[float], float]:
+    """Latencies from a datagram (sent from rest) to a non-zero duty at the last-written enable pin; poll period."""
+    last_pin = enable_pins[-1]
+    latencies, polls, poll_time = [], 0, 0.0
+    for sample in range(samples):
+        speed = 0.5 if sample % 2 == 0 else -0.5
+        sent = time.monotonic()
+        link.send(Twist(speed, 0.0, 0.0))
+        while (duty := pi.get_PWM_dutycycle(last_pin)) == 0 and time.monotonic() - sent < 1.0:
+            polls += 1
+        seen = time.monotonic()
+        poll_time += seen - sent
+        if duty:
+            latencies.append(seen - sent)
+        for _ in range(5):  # keep driving a moment, then brake to rest: the next sample starts from zero duties
+            link.send(Twist(speed, 0.0, 0.0))
+            time.sleep(0.05)
+        link.send(Twist(0.0, 0.0, 0.0))
+        _wait_at_rest(pi, enable_pins)
+    return latencies, poll_time / max(polls, 1)
+
+
+def _wait_at_rest(pi: Any, enable_pins: list[int]) -> None:
+    deadline = time.monotonic() + 3.0
+    quiet = 0
+    while quiet < 3 and time.monotonic() < deadline:
+        quiet = quiet + 1 if all(pi.get_PWM_dutycycle(pin) == 0 for pin in enable_pins) else 0
+        time.sleep(0.05)
+
+
+def _ratio_line(what: str, values: list[float]) -> tuple[float, float]:
+    p50, p99 = percentile(values, 0.5), percentile(values, 0.99)
+    verdict = "meets" if p99 < TARGET_LATENCY_S else "MISSES"
+    print(
+        f"{what}: p50 {p50 * 1e3:.2f} ms, p99 {p99 * 1e3:.2f} ms over {len(values)}; target p99 < "
+        f"{TARGET_LATENCY_S * 1e3:.0f} ms: ratio {p99 / TARGET_LATENCY_S:.2f} ({verdict})"
+    )
+    return p50, p99
+
+
+def run(quick: bool) -> dict[str, float]:
+    """Drive the virtual robot through the daemon and measure (see the module docstring)."""
+    import pigpio  # noqa: PLC0415 - the real client library, as a user of pigpiod would
+
+    drive_s, duty_samples, flood_count = (4.0, 6, 10_000) if quick else (20.0, 40, 100_000)
+    figures: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="robotd-bench-") as tmp:
+        out = Path(tmp)
+        with running(bench_config(out, BENCH_OVERRIDES), out) as (config, _vhw, daemon):
+            clients = PoseClients(config.pose_socket.path, POSE_CLIENTS)
+            clients.start()
+            link = UdpLink("127.0.0.1", config.teleop.port, None)
+            pi: Any = pigpio.pi("127.0.0.1", config.pigpiod.port, show_errors=False)
+            try:
+                cpu0, wall0 = cpu_seconds(daemon.pid), time.monotonic()
+                drive_back_and_forth(link, 0.5, drive_s)
+                cpu_share = (cpu_seconds(daemon.pid) - cpu0) / (time.monotonic() - wall0)
+                rss, peak = memory_mb(daemon.pid)
+                link.send(Twist(0.0, 0.0, 0.0))
+                time.sleep(0.3)  # the last frames reach the record
+                fix = fix_latencies(clients.first_pose_with_fix, frame_write_times(config.sim.record_path))
+                figures["fix_to_pose_p50_s"], figures["fix_to_pose_p99_s"] = _ratio_line("fix frame -> pose", fix)
+                enables = [getattr(config.motors.wheels, w).enable for w in ("front_left", "front_right",
+                                                                              "rear_left", "rear_right")]  # fmt: skip
+                _wait_at_rest(pi, enables)
+                duty, poll_s = teleop_to_duty(link, pi, enables, duty_samples)
+                figures["teleop_to_duty_p50_s"], figures["teleop_to_duty_p99_s"] = _ratio_line(
+                    "teleop datagram -> duty at pigpiod", duty
+                )
+                print(
+                    f"  (duty polled every {poll_s * 1e3:.2f} ms with the pigpio client: the figure is an upper bound)"
+                )
+                print(
+                    f"daemon CPU while driving at 0.5 m/s with {POSE_CLIENTS} pose clients: {cpu_share * 100:.1f}% of "
+                    f"one core; target < {TARGET_CPU_SHARE * 100:.0f}%: ratio {cpu_share / TARGET_CPU_SHARE:.2f}"
+                )
+                print(
+                    f"daemon memory: {rss:.1f} MB resident ({peak:.1f} MB peak); target < {TARGET_RSS_MB:.0f} MB: "
+                    f"ratio {peak / TARGET_RSS_MB:.2f}"
+                )
+                figures |= {"cpu_share": cpu_share, "rss_mb": rss, "peak_rss_mb": peak}
+                figures |= flood_figures(config, clients, flood_count)
+                if daemon.poll() is not None:
+                    raise RuntimeError(f"the daemon exited with {daemon.returncode} during the benchmark")
+            finally:
+                pi.stop()
+                link.sock.close()
+                clients.close()
+    return figures
+
+
+def _status_after(clients: PoseClients, t: float) -> dict[str, Any]:
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline:
+        for status in clients.statuses:
+            if status["t"] > t:
+                return status
+        time.sleep(0.02)
+    raise RuntimeError("no status message from the daemon")
+
+
+def flood_figures(config: RobotdConfig, clients: PoseClients, count: int) -> dict[str, float]:
+    """Send `count` hostile datagrams; check they were all rejected and the control period held."""
+    before = _status_after(clients, time.monotonic())
+    started = time.monotonic()
+    sent = flood(config.teleop.port, hostile_datagrams(random.Random(7), count))
+    elapsed = time.monotonic() - started
+    during = _status_after(clients, time.monotonic())  # its period window lies inside the flood when it lasts > 1 s
+    _queued, drops = udp_queue(config.teleop.port)
+    time.sleep(0.2)
+    after = _status_after(clients, time.monotonic())
+    teleop_before, teleop_after = before["drivers"]["teleop"], after["drivers"]["teleop"]
+    rejected = sum(teleop_after[k] - teleop_before[k] for k in teleop_after if k != "accepted")
+    accepted = teleop_after["accepted"] - teleop_before["accepted"]
+    period_before, period_during = before["drivers"]["control"]["period"], during["drivers"]["control"]["period"]
+    print(
+        f"flood: {sent} hostile datagrams in {elapsed:.1f} s ({sent / elapsed:.0f}/s), {rejected} rejected, "
+        f"{accepted} accepted, {drops} dropped by the kernel; control period p99 {period_before['p99_ms']:.1f} ms "
+        f"before, {period_during['p99_ms']:.1f} ms during (max {period_during['max_ms']:.1f} ms; nominal "
+        f"{1e3 / config.control.rate_hz:.0f} ms)"
+    )
+    return {
+        "flood_sent": float(sent),
+        "flood_rejected": float(rejected),
+        "flood_accepted": float(accepted),
+        "flood_rate_per_s": sent / elapsed,
+        "flood_period_p99_ms": float(period_during["p99_ms"]),
+        "flood_period_max_ms": float(period_during["max_ms"]),
+    }

@@ -1,0 +1,109 @@
+"""Driving the virtual robot through the daemon: teleop in, pose out, deadman, SIGTERM (real processes and sockets)."""
+
+from __future__ import annotations
+
+import math
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from daemon_support import Robot, running_robot, wait_until
+
+from robotd.kinematics import Twist
+
+pytestmark = pytest.mark.slow
+
+STOP = Twist(0.0, 0.0, 0.0)
+WRITE_ALLOWANCE_S = 0.010
+"""Time for the daemon to write zero duties through gpiozero to pigpiod, and its loop's wake-up jitter."""
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Robot]:
+    """One virtual robot and daemon shared by the tests of this module (each leaves it at rest)."""
+    with running_robot(tmp_path_factory.mktemp("driving"), {"pose_socket": {"status_rate_hz": 5.0}}) as robot:
+        yield robot
+
+
+def come_to_rest(robot: Robot) -> None:
+    """Stop, and wait until the pose says the robot is still."""
+    robot.send(STOP)
+    since = time.monotonic()
+    wait_until(
+        lambda: (
+            robot.tap is not None
+            and robot.tap.poses[-1][0] > since + 0.3
+            and abs(robot.tap.pose["vx"]) + abs(robot.tap.pose["vy"]) < 1e-3
+        ),
+        5.0,
+        "the robot at rest",
+    )
+
+
+def test_a_teleop_client_drives_one_metre_forward_and_the_pose_socket_shows_it_within_5_cm(robot: Robot) -> None:
+    assert robot.tap is not None
+    start_truth = robot.truth()[-1]
+    robot.drive(Twist(0.25, 0.0, 0.0), 1.0 / 0.25)  # the slew-limited ramps up and down cancel out
+    come_to_rest(robot)
+    wait_until(lambda: robot.truth()[-1]["t"] > robot.tap.pose["t"], 2.0, "truth past the last pose")  # type: ignore[union-attr]
+    pose = robot.tap.pose
+    truth = min(robot.truth(), key=lambda sample: abs(sample["t"] - pose["t"]))
+    travelled = math.hypot(truth["x"] - start_truth["x"], truth["y"] - start_truth["y"])
+    assert travelled == pytest.approx(1.0, abs=0.1), "the robot did not drive about 1 m"
+    assert truth["x"] - start_truth["x"] > 0.9, "the robot did not drive forward"
+    error = math.hypot(pose["x"] - truth["x"], pose["y"] - truth["y"])
+    assert error < 0.05, f"pose ({pose['x']:.3f}, {pose['y']:.3f}) vs truth ({truth['x']:.3f}, {truth['y']:.3f})"
+
+
+def test_a_client_that_goes_silent_has_the_motors_at_zero_within_the_deadman_timeout_plus_one_period(
+    robot: Robot,
+) -> None:
+    deadman = robot.config.teleop.deadman_timeout_s
+    period = 1.0 / robot.config.control.rate_hz
+    last_sent = robot.drive(Twist(0.2, 0.0, 0.0), 0.6)
+    # Poll the duties through pigpio until they are all zero; remember when they were last seen driving.
+    last_driving = first_zero = math.nan
+    previous_poll = time.monotonic()
+    poll_gaps = []
+    while time.monotonic() < last_sent + deadman + 1.0:
+        duties = robot.duties()
+        now = time.monotonic()
+        poll_gaps.append(now - previous_poll)
+        previous_poll = now
+        if any(duties):
+            last_driving = now
+        elif not math.isnan(last_driving):
+            first_zero = now
+            break
+    assert last_driving - last_sent > deadman - 3 * period, "the motors stopped long before the deadman timeout"
+    # One poll of the twelve pins takes a few round trips to pigpiod: the zero may have landed during it. Writing
+    # the zeros is twelve round trips of the daemon's own, and the loop wakes up to a millisecond or two late.
+    resolution = max(poll_gaps[-2:])
+    assert first_zero - last_sent <= deadman + period + resolution + WRITE_ALLOWANCE_S, (
+        f"motors zeroed {first_zero - last_sent:.3f} s after the last command (deadman {deadman} s, "
+        f"period {period} s, poll resolution {resolution * 1e3:.1f} ms)"
+    )
+    status = robot.tap.status_after(first_zero)  # type: ignore[union-attr]
+    assert status["drivers"]["control"]["state"] == "deadman"
+    time.sleep(0.1)
+    assert robot.duties() == (0.0, 0.0, 0.0, 0.0), "the motors started again without a command"
+
+
+def test_sigterm_during_motion_leaves_every_duty_at_zero_and_the_daemon_exits_0_within_a_second(
+    tmp_path: Path,
+) -> None:
+    with running_robot(tmp_path) as robot:
+        robot.drive(Twist(0.0, 0.2, 0.3), 0.5)
+        assert any(robot.duties()), "the robot was not driving"
+        assert robot.daemon is not None
+        robot.send(Twist(0.0, 0.2, 0.3))  # still commanded to move when the signal comes
+        robot.daemon.send_signal(signal.SIGTERM)
+        signalled = time.monotonic()
+        status = robot.daemon.wait(timeout=5.0)
+        exited = time.monotonic() - signalled
+        assert status == 0, robot.logs()
+        assert exited < 1.0, f"the daemon took {exited:.2f} s to exit"
+        assert robot.duties() == (0.0, 0.0, 0.0, 0.0)
+        assert "stopping on signal" in robot.daemon_log()
