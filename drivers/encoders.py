@@ -19,7 +19,7 @@ Raspberry Pi OS 13, where pigpio does not run, would be a second class with the 
 from __future__ import annotations
 
 import asyncio
-import contextlib
+import logging
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -29,10 +29,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from drivers.notify_stream import SequenceGaps, TickClock
-from drivers.pigpio_link import PigpiodUnavailableError, PigpioLink, open_notifications
+from drivers.pigpio_link import PigpioCommandError, PigpiodUnavailableError, PigpioLink, open_notifications
 from drivers.pigpio_protocol import REPORT_SIZE, Cmd, Mode, Pull, decode_reports
 from drivers.quadrature import EdgeTimedSpeed, EncoderWiring, QuadratureDecoder, transition_table
 from robotd.config import WHEELS, EncodersConfig, PigpiodConfig
+
+log = logging.getLogger("robotd.encoders")
 
 DECODE_BATCH_BYTES = 1 << 16
 """Reports gathered before decoding without waiting for the next publication (5461 reports)."""
@@ -180,8 +182,10 @@ class PigpioEncoders:
                 async with asyncio.TaskGroup() as tasks:
                     tasks.create_task(self._read(notifications[1]))
                     tasks.create_task(self._resync(link))
-            except* (OSError, EOFError, asyncio.IncompleteReadError):
-                pass
+            except* (OSError, EOFError, asyncio.IncompleteReadError) as group:
+                log.warning(
+                    "encoder stream from pigpiod lost (%s): odometry degraded, reconnecting", group.exceptions[0]
+                )
             finally:
                 self._drain()  # what arrived before the break still counts
                 self._connected = False
@@ -191,11 +195,17 @@ class PigpioEncoders:
             while True:
                 await asyncio.sleep(backoff)
                 backoff = min(backoff * 2, self._pigpiod.reconnect_max_s)
-                with contextlib.suppress(PigpiodUnavailableError, OSError):
-                    link, notifications = await self._connect()
-                    self._reconnects += 1
-                    backoff = 0.05
-                    break
+                try:
+                    # bounded as a whole: a pigpiod that accepts but stalls must not hold the encoders forever
+                    async with asyncio.timeout(4 * self._pigpiod.connect_timeout_s):
+                        link, notifications = await self._connect()
+                except (PigpiodUnavailableError, OSError, PigpioCommandError) as error:
+                    log.debug("encoders: pigpiod still unavailable: %s", error)
+                    continue
+                self._reconnects += 1
+                backoff = 0.05
+                log.info("encoder stream from pigpiod restored")
+                break
 
     async def _read(self, reader: asyncio.StreamReader) -> None:
         """Take reports off the socket as they arrive; decode them in batches of DECODE_BATCH_BYTES or at publication.

@@ -28,7 +28,7 @@ def applies(t: FloatArray) -> bool:
 
 def step_ends(t: list[float], period: float) -> list[int]:
     """Indices of the samples that end a prediction step: the first sample at least `period` after the last end."""
-    ends = []
+    ends: list[int] = []
     if not t:
         return ends
     base = t[0]
@@ -54,7 +54,7 @@ def wrap(angle: FloatArray) -> FloatArray:
     return np.asarray((angle + math.pi) % (2.0 * math.pi) - math.pi, dtype=np.float64)
 
 
-def poses_at(  # noqa: PLR0913, PLR0917 - the log's columns and the robot
+def poses_at(  # noqa: PLR0917 - the log's columns and the robot
     t: FloatArray,
     ticks: IntArray,
     record_t: FloatArray,

@@ -3,53 +3,32 @@
 Theory of operation
 - Inputs (wheel ticks or body twists) advance the state. Ticks are exact displacements: they are accumulated and
   integrated at most every `predict_period_s` as one step at their mean twist. A twist is a sample held until the next.
-- Each step is kept in a short history (state, covariance, twist in force, and the event that produced it). A fix
-  measured at `t_meas` in the past is fused at that time: the history is rewound to the last state before `t_meas`,
-  the fix is fused there, and every later event is applied again (a late fix lands exactly where an on-time one would).
-- A fix is gated by its NIS (chi-square, 2 dof). Rejected fixes that keep coming for `recovery_min_s` and agree with
-  each other once the odometry motion is removed re-seed the position (the robot was carried, or the filter
-  drifted): one consistent burst of outliers is too short to do that.
-- The first fix seeds the position. The heading is checked once the robot has driven `heading_align_m`: the odometry
-  track is rotated onto the fixes (a least-squares rotation); when that rotation disagrees with the filter, the
-  filter takes it. An unknown initial heading therefore costs one short drive, not a lost robot.
-- The IPS noise is estimated from the median of recent innovations, robust to outliers, between two bounds.
-- The paper's filter is the same code with those features off (`Estimator.paper`).
+- Each step is kept in a short history (robotd.history: state, covariance, twist in force, and the event that
+  produced it). A fix measured at `t_meas` in the past is fused at that time: the history is rewound to the last
+  state before `t_meas`, the fix is fused there, and every later event is applied again (a late fix lands exactly
+  where an on-time one would).
+- Each fix gets a verdict (robotd.fixgate): the first agreeing fixes seed the position, then fixes are gated by their
+  NIS (chi-square, 2 dof); rejected fixes that keep coming for `recovery_min_s` and agree with each other once the
+  odometry motion is removed re-seed the position (the robot was carried, or the filter drifted). The IPS noise is
+  estimated from the median of recent innovations, robust to outliers, between two bounds.
+- The heading is checked once the robot has driven `heading_align_m` (robotd.heading): the odometry track is rotated
+  onto the fixes (a least-squares rotation); when that rotation disagrees with the filter, the filter takes it. An
+  unknown initial heading therefore costs one short drive, not a lost robot.
+- The paper's filter is the same code with those features off (`Estimator.paper_filter`).
 """
 
 from __future__ import annotations
 
-import enum
 import math
-from collections import deque
 from dataclasses import dataclass
 
 from robotd import ekf, kinematics
 from robotd.config import EkfConfig
-from robotd.heading import LN4, HeadingAligner
+from robotd.fixgate import FixGate, TrackState, Verdict
+from robotd.heading import HeadingAligner
 from robotd.history import Entry, History, Predictor, Twist3, initial_entry
 
-SEED_FIXES = 3
 MIN_REALIGN_RAD = 0.35  # smaller heading errors are the EKF's own business: it corrects them from fixes in motion
-
-
-class TrackState(enum.Enum):
-    """Where the estimator stands with respect to the IPS."""
-
-    INITIALISING = "initialising"  # no fix seeded the position yet
-    TRACKING = "tracking"  # the latest fix was accepted
-    REJECTING = "rejecting"  # fixes arrive but are gated out; recovery watches them
-
-
-class Verdict(enum.Enum):
-    """What happened to one fix."""
-
-    ACCEPTED = "accepted"
-    SEEDED = "seeded"  # the first agreeing fixes set the position
-    SEEDING = "seeding"  # held until SEED_FIXES fixes agree (a first fix may be an outlier)
-    RECOVERED = "recovered"  # rejected fixes agreed long enough: the position was re-seeded
-    GATED = "gated"  # rejected: NIS beyond the gate
-    TOO_OLD = "too_old"  # measured before the history's start
-    NON_FINITE = "non_finite"
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,11 +86,6 @@ class Estimator:
         self._r4k = geometry.wheel_radius_m / (4.0 * (geometry.lx_m + geometry.ly_m))
         self._offset = ips_offset_m if (ekf_config.lever_arm and not paper) else (0.0, 0.0)
         self._latency = ekf_config.latency_compensation and not paper
-        self._gating = ekf_config.gating and not paper
-        self._adaptive = ekf_config.adaptive_ips_noise and not paper
-        self._gate = ekf.chi2_gate_2dof(ekf_config.gate_probability)
-        self._r_floor = ekf_config.ips_sigma_m**2
-        self._r = self._r_floor
         c = ekf_config
         if paper:  # eq. 9: a 2x2 on (v, w) mapped through G, per prediction step (see ekf.ControlNoise)
             self._noise = ekf.ControlNoise(const_v2=c.paper_sigma_v_mps**2, const_w2=c.paper_sigma_w_rad_s**2)
@@ -126,8 +100,6 @@ class Estimator:
         self._history = History(
             initial_entry(c.initial_pose, ekf.cov_diag(*c.initial_sigma)), c.history_s, keep_past=self._latency
         )
-        self._seeded = False
-        self._state = TrackState.INITIALISING
         self._last_accept_t = -math.inf
         self._last_input_t = -math.inf
         # wheel ticks accumulated since the last prediction
@@ -135,9 +107,6 @@ class Estimator:
         self._tick_base_t = -math.inf
         self._tick_last: tuple[int, int, int, int] | None = None
         self._tick_last_t = -math.inf
-        self._rejected: deque[tuple[float, float, float]] = deque(maxlen=256)  # t_meas, innovation x, y
-        self._candidates: deque[tuple[float, float, float]] = deque(maxlen=SEED_FIXES)
-        self._innovations: deque[float] = deque(maxlen=31)  # |nu|^2 - (trace(S) - 2 r), for the noise estimate
         self._aligner = HeadingAligner(c.heading_align_m, self._offset, enabled=c.heading_align_m > 0.0 and not paper)
         self.counters: dict[str, int] = dict.fromkeys(
             (
@@ -157,6 +126,7 @@ class Estimator:
             ),
             0,
         )
+        self._fix_gate = FixGate(c, self.counters, paper=paper)
 
     @classmethod
     def paper_filter(cls, ekf_config: EkfConfig, geometry: kinematics.Geometry, counts_per_rev: int) -> Estimator:
@@ -180,7 +150,9 @@ class Estimator:
         if t - self._tick_base_t >= self.config.predict_period_s:
             self._flush_ticks()
 
-    def on_wheel_samples(self, times: list[float], ticks: list[tuple[int, int, int, int]], start: int, stop: int) -> None:
+    def on_wheel_samples(
+        self, times: list[float], ticks: list[tuple[int, int, int, int]], start: int, stop: int
+    ) -> None:
         """on_wheels(times[i], ticks[i]) for i in range(start, stop), in one call: the same result, faster.
 
         Most samples only move the newest tick reading; this loop keeps that reading in local variables and does
@@ -238,7 +210,12 @@ class Estimator:
         if dt <= 0.0:
             return
         k = 2.0 * math.pi / self.counts_per_rev / dt
-        w1, w2, w3, w4 = (last[0] - base[0]) * k, (last[1] - base[1]) * k, (last[2] - base[2]) * k, (last[3] - base[3]) * k
+        w1, w2, w3, w4 = (
+            (last[0] - base[0]) * k,
+            (last[1] - base[1]) * k,
+            (last[2] - base[2]) * k,
+            (last[3] - base[3]) * k,
+        )
         # kinematics.forward (eq. 1), inlined: this runs for every prediction step
         u = (self._r4 * (w1 + w2 + w3 + w4), self._r4 * (-w1 + w2 + w3 - w4), self._r4k * (-w1 + w2 - w3 + w4))
         self._tick_base, self._tick_base_t = last, self._tick_last_t
@@ -283,9 +260,9 @@ class Estimator:
                 (math.nan, math.nan),
                 (math.nan,) * 3,
                 math.nan,
-                self._gate,
+                self._fix_gate.gate,
                 Verdict.TOO_OLD,
-                math.sqrt(self._r),
+                math.sqrt(self._fix_gate.r),
             )
         k = history.index_at(t_meas)
         if k < len(history.entries) - 1:
@@ -294,10 +271,10 @@ class Estimator:
         prior = self._predictor.step(base, t_meas, base.u) if t_meas > base.t else base
         prior.u = base.u
         ox, oy = self._offset
-        r = self._r
+        r = self._fix_gate.r
         inn = ekf.innovation(prior.x, prior.y, prior.theta, prior.p, x, y, r, ox, oy)
-        verdict = self._judge(t_meas, inn, r)
-        if self._seeded:
+        verdict = self._fix_gate.judge(t_meas, inn, r)
+        if self._fix_gate.seeded:
             self._aligner.record(t_meas, x, y)
         fused = Entry(t_meas, prior.x, prior.y, prior.theta, prior.p, prior.u, None, (x, y, r, False))
         if verdict is Verdict.ACCEPTED:
@@ -309,7 +286,14 @@ class Estimator:
             self._last_accept_t = max(self._last_accept_t, t_meas)
         self._maybe_realign()
         return Diagnostics(
-            t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, self._gate, verdict, math.sqrt(r)
+            t,
+            t_meas,
+            (inn.nu_x, inn.nu_y),
+            (inn.s_xx, inn.s_xy, inn.s_yy),
+            inn.nis,
+            self._fix_gate.gate,
+            verdict,
+            math.sqrt(r),
         )
 
     def _replay_event(self, prev: Entry, event: Entry) -> Entry:
@@ -335,80 +319,16 @@ class Estimator:
     def _seed(self, prior: Entry, zx: float, zy: float, r: float, verdict: Verdict) -> Entry:
         """Move the beacon onto the agreeing fixes (their median innovation), forgetting the position's past."""
         if verdict is Verdict.RECOVERED:
-            recent = list(self._rejected)[-self.config.recovery_min_fixes :]
-            self._rejected.clear()
-            self._innovations.clear()
             self._aligner.restart()  # carried robots may have been turned too: check the heading again
-        else:
-            recent = list(self._candidates)
-            self._candidates.clear()
-        dx = sorted(e[1] for e in recent)[len(recent) // 2]
-        dy = sorted(e[2] for e in recent)[len(recent) // 2]
+        dx, dy = self._fix_gate.seed_shift(verdict)
         p = (r, 0.0, 0.0, r, 0.0, prior.p[5])
         return Entry(prior.t, prior.x + dx, prior.y + dy, prior.theta, p, prior.u, None, (zx, zy, r, False))
-
-    def _agree(self, innovations: list[tuple[float, float, float]]) -> bool:
-        """Whether fixes (as innovations, odometry motion removed) all lie close to their median."""
-        mx = sorted(e[1] for e in innovations)[len(innovations) // 2]
-        my = sorted(e[2] for e in innovations)[len(innovations) // 2]
-        tolerance = max(self.config.recovery_agreement_m, 4.0 * math.sqrt(self._r))
-        return all(math.hypot(e[1] - mx, e[2] - my) <= tolerance for e in innovations)
-
-    def _judge(self, t_meas: float, inn: ekf.Innovation, r: float) -> Verdict:
-        """Seed, accept, gate or recover: the fix's verdict (and the counters and noise estimate that follow)."""
-        if not self._seeded:
-            if self.paper:  # as published: the first fix is fused like any other
-                self._seeded = True
-                self._state = TrackState.TRACKING
-                self.counters["fixes_accepted"] += 1
-                return Verdict.ACCEPTED
-            self._candidates.append((t_meas, inn.nu_x, inn.nu_y))
-            if len(self._candidates) < SEED_FIXES or not self._agree(list(self._candidates)):
-                return Verdict.SEEDING
-            self._seeded = True
-            self._state = TrackState.TRACKING
-            self.counters["fixes_seeded"] += 1
-            return Verdict.SEEDED
-        if self._adaptive:
-            self._learn_noise(inn, r)
-        if not self._gating or inn.nis <= self._gate:
-            self._rejected.clear()
-            self._state = TrackState.TRACKING
-            self.counters["fixes_accepted"] += 1
-            return Verdict.ACCEPTED
-        self._state = TrackState.REJECTING
-        self._rejected.append((t_meas, inn.nu_x, inn.nu_y))
-        if self._recoverable():
-            self.counters["recoveries"] += 1
-            self._state = TrackState.TRACKING
-            return Verdict.RECOVERED
-        self.counters["fixes_rejected"] += 1
-        return Verdict.GATED
-
-    def _recoverable(self) -> bool:
-        """Rejections persisted long enough, and the latest of them agree with each other."""
-        c = self.config
-        rejected = self._rejected
-        if len(rejected) < c.recovery_min_fixes or rejected[-1][0] - rejected[0][0] < c.recovery_min_s:
-            return False
-        # the rejected fixes of the last recovery_min_s, as innovations (odometry motion removed)
-        newest = rejected[-1][0]
-        recent = [e for e in rejected if newest - e[0] <= c.recovery_min_s]
-        return len(recent) >= c.recovery_min_fixes and self._agree(recent)
-
-    def _learn_noise(self, inn: ekf.Innovation, r: float) -> None:
-        """Track the IPS noise variance as the median innovation, less what the prediction accounts for."""
-        predicted = 0.5 * (inn.s_xx + inn.s_yy) - r  # H P H^T per axis
-        self._innovations.append((inn.nu_x * inn.nu_x + inn.nu_y * inn.nu_y) / LN4 - predicted)
-        if len(self._innovations) >= 5:
-            estimate = sorted(self._innovations)[len(self._innovations) // 2]
-            self._r = min(max(estimate, self._r_floor), self.config.ips_sigma_max_m**2)
 
     # --- heading alignment --------------------------------------------------------------------------
 
     def _maybe_realign(self) -> None:
         """Take the heading of the aligner's rotation fit when the filter's heading disagrees with it."""
-        fit = self._aligner.check(self._r)
+        fit = self._aligner.check(self._fix_gate.r)
         if fit is None:
             return
         last = self._history.last
@@ -422,39 +342,61 @@ class Estimator:
         self.counters["heading_realigned"] += 1
         c, s = math.cos(fit.rotation), math.sin(fit.rotation)
         x, y = fit.tx + ax * c - ay * s, fit.ty + ax * s + ay * c
-        r = self._r
+        r = self._fix_gate.r
         entry = Entry(
             last.t, x, y, ekf.wrap_angle(fit.rotation + ath), (r, 0.0, 0.0, r, 0.0, sigma * sigma), last.u, None, None
         )
         # the history before now was built on the wrong heading: start it again from here
         self._history.reset(entry)
-        self._rejected.clear()
-        self._innovations.clear()
+        self._fix_gate.forget()
         self._aligner.restart()
 
     # --- output ---------------------------------------------------------------------------------------
 
     def pose(self, t: float | None = None) -> PoseEstimate:
         """The estimate, extrapolated with the twist in force to time t when t is later than the newest input."""
+        when, x, y, th, (vx, vy, wz), p = self._extrapolate(t)
+        return PoseEstimate(
+            when, x, y, th, vx, vy, wz, ekf.cov_full(p), when - self._last_accept_t, self._fix_gate.state
+        )
+
+    def position(self, t: float) -> tuple[float, float, float, ekf.Cov] | None:
+        """x, y, theta and P (upper triangle) of pose(t), or None before a fix placed the filter (state INITIALISING).
+
+        The replay's per-output call: the same numbers as pose(t) without building a PoseEstimate.
+        """
+        if self._fix_gate.state is TrackState.INITIALISING:
+            return None
+        _, x, y, th, _, p = self._extrapolate(t)
+        return x, y, th, p
+
+    def _extrapolate(self, t: float | None) -> tuple[float, float, float, float, Twist3, ekf.Cov]:
+        """Time, pose, twist in force and P of the newest state carried forward to t (see pose)."""
         last = self._history.last
         x, y, th = last.x, last.y, last.theta
         when = last.t
-        vx, vy, wz = last.u
+        u = last.u
         base, ticks = self._tick_base, self._tick_last
         if base is not None and ticks is not None and self._tick_last_t > self._tick_base_t:
             # ticks not yet integrated: their mean twist, without committing a prediction step
             k = 2.0 * math.pi / self.counts_per_rev / (self._tick_last_t - self._tick_base_t)
-            tw = kinematics.forward(self.geometry, tuple((b - a) * k for a, b in zip(base, ticks, strict=True)))  # type: ignore[arg-type]
-            vx, vy, wz = tw.vx, tw.vy, tw.wz
+            w1, w2, w3, w4 = (
+                (ticks[0] - base[0]) * k,
+                (ticks[1] - base[1]) * k,
+                (ticks[2] - base[2]) * k,
+                (ticks[3] - base[3]) * k,
+            )
+            u = (self._r4 * (w1 + w2 + w3 + w4), self._r4 * (-w1 + w2 + w3 - w4), self._r4k * (-w1 + w2 - w3 + w4))
         if t is None:
             t = max(when, self._tick_last_t)
         if t > when and math.isfinite(when):
+            vx, vy, wz = u
             dt = t - when
             mid = th + 0.5 * wz * dt
             c, s = math.cos(mid), math.sin(mid)
             x, y, th = x + (vx * c - vy * s) * dt, y + (vx * s + vy * c) * dt, ekf.wrap_angle(th + wz * dt)
             when = t
-        return PoseEstimate(when, x, y, th, vx, vy, wz, ekf.cov_full(last.p), when - self._last_accept_t, self._state)
+        return when, x, y, th, u, last.p
 
 
 __all__ = ["Diagnostics", "Estimator", "PoseEstimate", "TrackState", "Verdict"]

@@ -11,8 +11,8 @@ with json.loads.
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -72,10 +72,13 @@ def parse_wheels(lines: list[str]) -> tuple[npt.NDArray[np.float64], npt.NDArray
         return None
     try:
         t = np.array(list(map(float, times)), dtype=np.float64)
-        counts = np.array(list(map(int, tokens)), dtype=np.int64)
-    except (ValueError, OverflowError):
+        # JSON integers read through float() (several times faster than int()): exact below 2^53
+        exact = np.array(list(map(float, tokens)), dtype=np.float64)
+    except ValueError:
         return None
-    return t, counts.reshape(-1, 4)
+    if not np.all(np.abs(exact) < 2.0**53):
+        return None
+    return t, exact.astype(np.int64).reshape(-1, 4)
 
 
 def _numbers_text(template: Template, lines: list[str]) -> str | None:
@@ -83,21 +86,23 @@ def _numbers_text(template: Template, lines: list[str]) -> str | None:
     if not lines:
         return None
     block = "\n".join(lines)
-    if any(chr(c) in block for c in (1, 2, 3, 4, 5, 0x1F)):  # the markers must not occur in the text itself
+    if any(chr(c) in block for c in range(1, 8)):  # the markers must not occur in the text itself
         return None
-    # markers: \x01 the prefix, \x02.. the distinct separators in order, \x1f the suffix; longest first, as the
-    # type-bearing separator starts with the same ", " as the others
-    distinct = sorted(set(template.separators), key=len, reverse=True)
-    code = {sep: chr(2 + i) for i, sep in enumerate(distinct)}
-    for sep in distinct:
+    # constants holding 'e' or 'E' (number characters, e.g. in "type") become one marker character each, longest
+    # first; all other constants stay as they are: once the numbers are deleted, every line must read exactly as
+    # the template's constants
+    lettered = sorted({sep for sep in template.separators if "e" in sep or "E" in sep}, key=len, reverse=True)
+    code = {sep: chr(2 + i) for i, sep in enumerate(lettered)}
+    for sep in lettered:
         block = block.replace(sep, code[sep])
-    block = block.replace(PREFIX, "\x01").replace(template.suffix, "\x1f")
-    expected = "\x01" + "".join(code[sep] for sep in template.separators) + "\x1f"
-    if block.translate(_DELETE_NUMBERS) != "\n".join([expected] * len(lines)):
+    shape = PREFIX + "".join(code.get(sep, sep) for sep in template.separators) + template.suffix
+    if block.translate(_DELETE_NUMBERS) != "\n".join([shape] * len(lines)):
         return None
-    table: dict[int, str | None] = {ord(c): "," for c in code.values()}
-    table.update({1: ",", 0x1F: None, ord("\n"): None})
-    text = block.translate(table) + ","
+    # the numbers, comma-separated: markers and line ends become commas, the constants' other characters go
+    table: dict[int, str | None] = dict.fromkeys(map(ord, set(shape) - set(code.values()) - {","}))
+    table.update({ord(c): "," for c in code.values()})
+    table[ord("\n")] = ","
+    text = "," + block.translate(table) + ","
     return text if json_numbers(text) else None
 
 
@@ -113,10 +118,96 @@ def json_numbers(text: str) -> bool:
         return False
     if ",." in text or "-." in text or ".," in text or ".e" in text or ".E" in text or ",-0," in text:
         return False
-    return _LEADING_ZERO.search(text) is None
+    digits = text.translate(_ONE_FOR_DIGITS)  # leading zeros: ",0" or ",-0" followed by a digit
+    return ",00" not in digits and ",01" not in digits and ",-00" not in digits and ",-01" not in digits
 
 
-_LEADING_ZERO = re.compile(r",-?0[0-9]")
+_ONE_FOR_DIGITS = str.maketrans("23456789", "11111111")
 
 
-__all__ = ["IPS", "TEMPLATES", "TRUTH", "WHEELS", "Template", "parse_batch", "parse_wheels"]
+# What each line is, in file order. Events: wheels, truth, other (what logfile.Columns keeps); while parsing also:
+WHEELS_KIND, TRUTH_KIND, OTHER_KIND = 1, 2, 0
+IPS_LINE, PER_LINE, NO_EVENT = 3, 4, -1  # a bulk-parsed fix, a line for the per-line reader, a line without event
+
+
+@dataclass(frozen=True, slots=True)
+class Bulk:
+    """The standard lines parsed: each line's kind, and the numbers of the wheels, truth and ips lines in order."""
+
+    kinds: npt.NDArray[np.int8]  # WHEELS_KIND, TRUTH_KIND, IPS_LINE or PER_LINE
+    wheels_t: npt.NDArray[np.float64]
+    wheels_ticks: npt.NDArray[np.int64]  # n x 4
+    truth: npt.NDArray[np.float64]  # n x 4: t, x, y, theta
+    ips: npt.NDArray[np.float64]  # n x 5: t, x, y, z, t_meas
+
+
+def parse_standard(lines: list[str]) -> Bulk:
+    """Sort lines (without newline) by template and parse each template's lines together.
+
+    A template whose lines are not all in its exact shape has all of them marked PER_LINE.
+    """
+    wheels_mark, truth_mark, ips_mark = (template.marker for template in TEMPLATES)
+    kinds = np.array(
+        [
+            WHEELS_KIND
+            if wheels_mark in line
+            else TRUTH_KIND
+            if truth_mark in line
+            else IPS_LINE
+            if ips_mark in line
+            else PER_LINE
+            for line in lines
+        ],
+        dtype=np.int8,
+    )
+    rows = np.flatnonzero(kinds == WHEELS_KIND)
+    wheels = parse_wheels([lines[i] for i in rows.tolist()])
+    if wheels is None:
+        kinds[rows] = PER_LINE
+        wheels = (np.zeros(0), np.zeros((0, 4), dtype=np.int64))
+    rows = np.flatnonzero(kinds == TRUTH_KIND)
+    truth = parse_batch(TRUTH, [lines[i] for i in rows.tolist()])
+    if truth is None:
+        kinds[rows] = PER_LINE
+        truth = np.zeros((0, 4))
+    rows = np.flatnonzero(kinds == IPS_LINE)
+    ips = parse_batch(IPS, [lines[i] for i in rows.tolist()])
+    if ips is None:
+        kinds[rows] = PER_LINE
+        ips = np.zeros((0, 5))
+    return Bulk(kinds, wheels[0], wheels[1], truth, ips)
+
+
+def merge_in_order(
+    kinds: npt.NDArray[np.int8], kind: int, extra_lines: list[int], *pairs: tuple[npt.NDArray[Any], npt.NDArray[Any]]
+) -> list[npt.NDArray[Any]]:
+    """A kind's columns: (bulk rows, rows of lines `extra_lines` read one by one) pairs, merged in file order."""
+    lines_of_kind = np.flatnonzero(kinds == kind)
+    from_extra = np.isin(lines_of_kind, np.array(extra_lines))
+    merged = []
+    for bulk, extra in pairs:
+        out = np.empty((len(lines_of_kind), *bulk.shape[1:]), dtype=bulk.dtype)
+        out[~from_extra] = bulk
+        out[from_extra] = extra
+        merged.append(out)
+    return merged
+
+
+__all__ = [
+    "IPS",
+    "IPS_LINE",
+    "NO_EVENT",
+    "OTHER_KIND",
+    "PER_LINE",
+    "TEMPLATES",
+    "TRUTH",
+    "TRUTH_KIND",
+    "WHEELS",
+    "WHEELS_KIND",
+    "Bulk",
+    "Template",
+    "merge_in_order",
+    "parse_batch",
+    "parse_standard",
+    "parse_wheels",
+]

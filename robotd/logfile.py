@@ -175,8 +175,8 @@ class Columns:
 
     def others_after(self) -> npt.NDArray[np.int64]:
         """For each of `others`, how many wheel samples come before it in the file."""
-        wheels_before = np.cumsum(self.kinds == WHEELS_KIND) if len(self.kinds) else np.zeros(0, dtype=np.int64)
-        return wheels_before[self.kinds == OTHER_KIND].astype(np.int64)
+        wheels_before = np.cumsum(self.kinds == WHEELS_KIND, dtype=np.int64)
+        return np.asarray(wheels_before[self.kinds == OTHER_KIND], dtype=np.int64)
 
     def __len__(self) -> int:
         return len(self.kinds)
@@ -199,11 +199,14 @@ class Columns:
     def events(self) -> list[Event]:
         """The events as objects, in file order."""
         wheels = iter(
-            [Wheels(t, (a, b, c, d)) for t, (a, b, c, d) in zip(self.wheels_t.tolist(), self.wheels_ticks.tolist())]
+            [
+                Wheels(t, (a, b, c, d))
+                for t, (a, b, c, d) in zip(self.wheels_t.tolist(), self.wheels_ticks.tolist(), strict=True)
+            ]
         )
         truth = iter([Truth(t, x, y, th) for t, x, y, th in self.truth.tolist()])
         others = iter(self.others)
-        sources = {WHEELS_KIND: wheels, TRUTH_KIND: truth, OTHER_KIND: others}
+        sources: dict[int, Iterator[Event]] = {WHEELS_KIND: wheels, TRUTH_KIND: truth, OTHER_KIND: others}
         return [next(sources[kind]) for kind in self.kinds.tolist()]
 
     @classmethod
@@ -221,7 +224,7 @@ class Columns:
         )
 
 
-WHEELS_KIND, TRUTH_KIND, OTHER_KIND = 1, 2, 0
+WHEELS_KIND, TRUTH_KIND, OTHER_KIND = logbulk.WHEELS_KIND, logbulk.TRUTH_KIND, logbulk.OTHER_KIND
 
 
 class SensorLog:
@@ -328,7 +331,7 @@ def _parse_line(line: str) -> Event | Meta | str | None:
 def parse_lines(lines: Iterable[str]) -> SensorLog:
     """Parse the lines of a sensor log; never raises on content."""
     texts = list(lines)
-    stripped = [line[:-1] if line.endswith("\n") else line for line in texts]
+    stripped = [line.removesuffix("\n") for line in texts]
     return _parse(stripped, texts)
 
 
@@ -349,47 +352,29 @@ def _parse(lines: list[str], originals: list[str] | None, *, newline_on_last: bo
     `originals` are the lines as given (for json.loads's error positions); None means each line had a newline,
     except the last unless newline_on_last.
     """
-    wheels_mark, truth_mark, ips_mark = (template.marker for template in logbulk.TEMPLATES)
-    kinds_list = [
-        WHEELS_KIND if wheels_mark in line else TRUTH_KIND if truth_mark in line else 3 if ips_mark in line else 4
-        for line in lines
-    ]
-    kinds = np.array(kinds_list, dtype=np.int8)
-    batches: dict[int, object] = {}
-    wheels_rows = np.flatnonzero(kinds == WHEELS_KIND)
-    wheels = logbulk.parse_wheels([lines[i] for i in wheels_rows.tolist()]) if len(wheels_rows) else None
-    if wheels is None:
-        kinds[wheels_rows] = 4
-    for kind, template in ((TRUTH_KIND, logbulk.TRUTH), (3, logbulk.IPS)):
-        rows = np.flatnonzero(kinds == kind)
-        batch = logbulk.parse_batch(template, [lines[i] for i in rows.tolist()])
-        if batch is None:
-            kinds[rows] = 4
-        else:
-            batches[kind] = batch
-    ips_rows = batches.get(3)
-    fixes = iter(
-        [IpsFix(t, x, y, z, m) for t, x, y, z, m in ips_rows.tolist()]  # type: ignore[attr-defined]
-        if ips_rows is not None
-        else []
-    )
+    bulk = logbulk.parse_standard(lines)
+    kinds = bulk.kinds
+    fixes = iter([IpsFix(t, x, y, z, t_meas) for t, x, y, z, t_meas in bulk.ips.tolist()])
     log = SensorLog()
     others: list[Event] = []
     extra_wheels: list[tuple[int, Wheels]] = []  # wheel samples that came through the per-line reader
     extra_truth: list[tuple[int, Truth]] = []
     last = len(lines) - 1
-    for index in np.flatnonzero(kinds >= 3).tolist():
-        if kinds[index] == 3:
+    pending = kinds >= logbulk.IPS_LINE
+    for index, kind in zip(np.flatnonzero(pending).tolist(), kinds[pending].tolist(), strict=True):
+        if kind == logbulk.IPS_LINE:
             others.append(next(fixes))
             kinds[index] = OTHER_KIND
             continue
-        kinds[index] = -1  # dropped unless it decodes to an event
+        kinds[index] = logbulk.NO_EVENT  # unless it decodes to an event
         if originals is not None:
             line = originals[index]
         else:
             line = lines[index] + "\n" if (index < last or newline_on_last) else lines[index]
         try:
             item = _parse_line(line)
+            if isinstance(item, Wheels) and not all(-(2**63) <= n < 2**63 for n in item.ticks):
+                raise _MalformedError("'ticks' must be 64-bit integers")
         except (json.JSONDecodeError, _MalformedError) as error:
             log.problems.append(f"line {index + 1}: {error}")
             continue
@@ -408,11 +393,9 @@ def _parse(lines: list[str], originals: list[str] | None, *, newline_on_last: bo
         else:
             kinds[index] = OTHER_KIND
             others.append(item)
-    wheels_t, wheels_ticks = wheels if wheels is not None else (np.zeros(0), np.zeros((0, 4), dtype=np.int64))
-    truth = batches.get(TRUTH_KIND)
-    truth_array = truth if isinstance(truth, np.ndarray) else np.zeros((0, 4))
-    if extra_wheels:  # merge them in file order
-        wheels_t, wheels_ticks = _merge(
+    wheels_t, wheels_ticks, truth = bulk.wheels_t, bulk.wheels_ticks, bulk.truth
+    if extra_wheels:
+        wheels_t, wheels_ticks = logbulk.merge_in_order(
             kinds,
             WHEELS_KIND,
             [i for i, _ in extra_wheels],
@@ -420,31 +403,14 @@ def _parse(lines: list[str], originals: list[str] | None, *, newline_on_last: bo
             (wheels_ticks, np.array([e.ticks for _, e in extra_wheels], dtype=np.int64)),
         )
     if extra_truth:
-        (truth_array,) = _merge(
+        (truth,) = logbulk.merge_in_order(
             kinds,
             TRUTH_KIND,
             [i for i, _ in extra_truth],
-            (truth_array, np.array([(e.t, e.x, e.y, e.theta) for _, e in extra_truth])),
+            (truth, np.array([(e.t, e.x, e.y, e.theta) for _, e in extra_truth])),
         )
-    kept = kinds[kinds >= 0]
-    log._events = None
-    log._columns = Columns(kept, wheels_t, wheels_ticks, truth_array, others)
-    return log
-
-
-def _merge(
-    kinds: npt.NDArray[np.int8], kind: int, extra_lines: list[int], *pairs: tuple[npt.NDArray[Any], npt.NDArray[Any]]
-) -> list[npt.NDArray[Any]]:
-    """Columns of a kind, bulk-parsed rows and per-line rows merged in file order."""
-    lines_of_kind = np.flatnonzero(kinds == kind)
-    from_extra = np.isin(lines_of_kind, np.array(extra_lines))
-    merged = []
-    for bulk, extra in pairs:
-        out = np.empty((len(lines_of_kind), *bulk.shape[1:]), dtype=bulk.dtype)
-        out[~from_extra] = bulk
-        out[from_extra] = extra
-        merged.append(out)
-    return merged
+    columns = Columns(kinds[kinds >= 0], wheels_t, wheels_ticks, truth, others)
+    return SensorLog(log.meta, None, log.problems, log.unknown_types, columns=columns)
 
 
 def iter_events(log: SensorLog, *types: type[Event]) -> Iterator[Event]:

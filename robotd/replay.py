@@ -18,7 +18,7 @@ import numpy as np
 
 from robotd import deadreckoning, kinematics
 from robotd.config import RobotdConfig
-from robotd.estimator import Diagnostics, Estimator, TrackState
+from robotd.estimator import Diagnostics, Estimator
 from robotd.logfile import IpsFix, IpsLost, SensorLog, TwistSample
 from robotd.metrics import ErrorStats, TruthTrack, fit_rotation, score, score_fixes
 
@@ -30,7 +30,7 @@ METHODS = ("odometry", "ips", "paper_ekf", "ekf")
 
 @dataclass(slots=True)
 class Track:
-    """A method's estimates over time."""
+    """A method's estimates over time; `cov` (3x3 row-major) is empty for odometry computed by robotd.deadreckoning."""
 
     t: list[float] = field(default_factory=list)
     x: list[float] = field(default_factory=list)
@@ -90,11 +90,22 @@ def robot_from_log(
     return geometry, offset, cpr, problems
 
 
-def _record(track: Track, t: float, est: Estimator, filtered: bool) -> None:
+def _record(track: Track, t: float, est: Estimator) -> None:
     """Append the estimate at t; a filter that has no position yet (no fix seeded it) has no output."""
-    pose = est.pose(t)
-    if filtered and pose.state is TrackState.INITIALISING:
+    position = est.position(t)
+    if position is None:
         return
+    x, y, theta, p = position
+    track.t.append(t)
+    track.x.append(x)
+    track.y.append(y)
+    track.theta.append(theta)
+    track.cov.append((p[0], p[1], p[2], p[1], p[3], p[4], p[2], p[4], p[5]))  # ekf.cov_full, inlined
+
+
+def _record_odometry(track: Track, t: float, est: Estimator) -> None:
+    """Append the dead-reckoning estimate at t (an Estimator that never sees a fix: always has a pose)."""
+    pose = est.pose(t)
     track.t.append(t)
     track.x.append(pose.x)
     track.y.append(pose.y)
@@ -115,7 +126,9 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     paper = Estimator.paper_filter(config.ekf, geometry, cpr)
     columns = log.columns()
     times: list[float] = columns.wheels_t.tolist()
-    ticks: list[tuple[int, int, int, int]] = list(zip(*(column.tolist() for column in columns.wheels_ticks.T)))
+    ticks: list[tuple[int, int, int, int]] = list(
+        zip(*(column.tolist() for column in columns.wheels_ticks.T), strict=True)
+    )
     others = columns.others
     after: list[int] = columns.others_after().tolist()
     vectorised = deadreckoning.applies(columns.wheels_t) and not any(type(e) is TwistSample for e in others)
@@ -132,9 +145,11 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     fed = 0  # wheel samples given to the filters
 
     def record(t: float, samples: int) -> None:
-        for track, est in zip(tracks, filters, strict=False):
-            _record(track, t, est, est is not odometry)
-        if odometry is None:
+        _record(tracks[0], t, robotd)
+        _record(tracks[1], t, paper)
+        if odometry is not None:
+            _record_odometry(tracks[2], t, odometry)
+        else:
             odo_records[0].append(t)
             odo_records[1].append(samples)
 
@@ -253,7 +268,10 @@ def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
     e = result.ekf
     with open(written[0], "w", encoding="utf-8") as stream:
         stream.writelines(
-            [ESTIMATE_LINE % (t, x, y, th, *cov) for t, x, y, th, cov in zip(e.t, e.x, e.y, e.theta, e.cov, strict=True)]
+            [
+                ESTIMATE_LINE % (t, x, y, th, *cov)
+                for t, x, y, th, cov in zip(e.t, e.x, e.y, e.theta, e.cov, strict=True)
+            ]
         )
     if result.metrics is not None:
         metrics = {name: (stats.as_dict() if stats is not None else None) for name, stats in result.metrics.items()}

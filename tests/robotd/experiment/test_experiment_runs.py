@@ -120,7 +120,7 @@ def test_only_the_first_seed_keeps_its_tracks_for_the_figures(experiment: Experi
 def table_rows(markdown: str) -> dict[str, list[str]]:
     """The first table's rows by their first cell."""
     rows: dict[str, list[str]] = {}
-    for line in markdown.split("\n### ", 1)[0].splitlines():
+    for line in markdown.split("\n#### ", 1)[0].splitlines():
         if line.startswith("| ") and not line.startswith("| method"):
             cells = [cell.strip() for cell in line.strip("|").split("|")]
             rows[cells[0]] = cells[1:]

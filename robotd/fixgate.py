@@ -1,0 +1,141 @@
+"""The verdict on each IPS fix: seeding, Mahalanobis gating, lock-out recovery, and the IPS noise estimate. Pure.
+
+- Until the position is seeded, fixes are held as candidates: SEED_FIXES that agree with each other seed it (a first
+  fix may be an outlier). The paper's filter fuses its first fix like any other.
+- Then a fix is accepted when its NIS is within the chi-square gate (2 dof). Rejected fixes are remembered: when
+  they keep coming for `recovery_min_s` and agree with each other once the odometry motion is removed (as
+  innovations), the position is re-seeded on them (the robot was carried, or the filter drifted); one consistent
+  burst of outliers is too short to do that.
+- The IPS noise variance is estimated from the median of recent innovations (robust to outliers), less what the
+  prediction accounts for, between ips_sigma_m^2 and ips_sigma_max_m^2.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections import deque
+
+from robotd import ekf
+from robotd.config import EkfConfig
+from robotd.heading import LN4
+
+SEED_FIXES = 3
+
+Innovation3 = tuple[float, float, float]  # t_meas, innovation x, y
+
+
+class TrackState(enum.Enum):
+    """Where the estimator stands with respect to the IPS."""
+
+    INITIALISING = "initialising"  # no fix seeded the position yet
+    TRACKING = "tracking"  # the latest fix was accepted
+    REJECTING = "rejecting"  # fixes arrive but are gated out; recovery watches them
+
+
+class Verdict(enum.Enum):
+    """What happened to one fix."""
+
+    ACCEPTED = "accepted"
+    SEEDED = "seeded"  # the first agreeing fixes set the position
+    SEEDING = "seeding"  # held until SEED_FIXES fixes agree (a first fix may be an outlier)
+    RECOVERED = "recovered"  # rejected fixes agreed long enough: the position was re-seeded
+    GATED = "gated"  # rejected: NIS beyond the gate
+    TOO_OLD = "too_old"  # measured before the history's start
+    NON_FINITE = "non_finite"
+
+
+class FixGate:
+    """Judges fixes by their innovation; keeps the track state, the counters it owns and the IPS noise estimate."""
+
+    def __init__(self, config: EkfConfig, counters: dict[str, int], *, paper: bool) -> None:
+        self.config = config
+        self.counters = counters
+        self.paper = paper
+        self.gating = config.gating and not paper
+        self.adaptive = config.adaptive_ips_noise and not paper
+        self.gate = ekf.chi2_gate_2dof(config.gate_probability)
+        self.r_floor = config.ips_sigma_m**2
+        self.r = self.r_floor  # the IPS noise variance in use
+        self.seeded = False
+        self.state = TrackState.INITIALISING
+        self.rejected: deque[Innovation3] = deque(maxlen=256)
+        self.candidates: deque[Innovation3] = deque(maxlen=SEED_FIXES)
+        self.innovations: deque[float] = deque(maxlen=31)  # |nu|^2 - (trace(S) - 2 r), for the noise estimate
+
+    def judge(self, t_meas: float, inn: ekf.Innovation, r: float) -> Verdict:
+        """Seed, accept, gate or recover: the fix's verdict (and the counters and noise estimate that follow)."""
+        if not self.seeded:
+            if self.paper:  # as published: the first fix is fused like any other
+                self.seeded = True
+                self.state = TrackState.TRACKING
+                self.counters["fixes_accepted"] += 1
+                return Verdict.ACCEPTED
+            self.candidates.append((t_meas, inn.nu_x, inn.nu_y))
+            if len(self.candidates) < SEED_FIXES or not self._agree(list(self.candidates)):
+                return Verdict.SEEDING
+            self.seeded = True
+            self.state = TrackState.TRACKING
+            self.counters["fixes_seeded"] += 1
+            return Verdict.SEEDED
+        if self.adaptive:
+            self._learn_noise(inn, r)
+        if not self.gating or inn.nis <= self.gate:
+            self.rejected.clear()
+            self.state = TrackState.TRACKING
+            self.counters["fixes_accepted"] += 1
+            return Verdict.ACCEPTED
+        self.state = TrackState.REJECTING
+        self.rejected.append((t_meas, inn.nu_x, inn.nu_y))
+        if self._recoverable():
+            self.counters["recoveries"] += 1
+            self.state = TrackState.TRACKING
+            return Verdict.RECOVERED
+        self.counters["fixes_rejected"] += 1
+        return Verdict.GATED
+
+    def seed_shift(self, verdict: Verdict) -> tuple[float, float]:
+        """Where a SEEDED or RECOVERED verdict moves the beacon: the median innovation of the agreeing fixes."""
+        if verdict is Verdict.RECOVERED:
+            recent = list(self.rejected)[-self.config.recovery_min_fixes :]
+            self.forget()
+        else:
+            recent = list(self.candidates)
+            self.candidates.clear()
+        dx = sorted(e[1] for e in recent)[len(recent) // 2]
+        dy = sorted(e[2] for e in recent)[len(recent) // 2]
+        return dx, dy
+
+    def forget(self) -> None:
+        """Drop the rejected fixes and the innovations: what they were measured against is gone."""
+        self.rejected.clear()
+        self.innovations.clear()
+
+    def _agree(self, innovations: list[Innovation3]) -> bool:
+        """Whether fixes (as innovations, odometry motion removed) all lie close to their median."""
+        mx = sorted(e[1] for e in innovations)[len(innovations) // 2]
+        my = sorted(e[2] for e in innovations)[len(innovations) // 2]
+        tolerance = max(self.config.recovery_agreement_m, 4.0 * math.sqrt(self.r))
+        return all(math.hypot(e[1] - mx, e[2] - my) <= tolerance for e in innovations)
+
+    def _recoverable(self) -> bool:
+        """Rejections persisted long enough, and the latest of them agree with each other."""
+        c = self.config
+        rejected = self.rejected
+        if len(rejected) < c.recovery_min_fixes or rejected[-1][0] - rejected[0][0] < c.recovery_min_s:
+            return False
+        # the rejected fixes of the last recovery_min_s, as innovations (odometry motion removed)
+        newest = rejected[-1][0]
+        recent = [e for e in rejected if newest - e[0] <= c.recovery_min_s]
+        return len(recent) >= c.recovery_min_fixes and self._agree(recent)
+
+    def _learn_noise(self, inn: ekf.Innovation, r: float) -> None:
+        """Track the IPS noise variance as the median innovation, less what the prediction accounts for."""
+        predicted = 0.5 * (inn.s_xx + inn.s_yy) - r  # H P H^T per axis
+        self.innovations.append((inn.nu_x * inn.nu_x + inn.nu_y * inn.nu_y) / LN4 - predicted)
+        if len(self.innovations) >= 5:
+            estimate = sorted(self.innovations)[len(self.innovations) // 2]
+            self.r = min(max(estimate, self.r_floor), self.config.ips_sigma_max_m**2)
+
+
+__all__ = ["SEED_FIXES", "FixGate", "TrackState", "Verdict"]

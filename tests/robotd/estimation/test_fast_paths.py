@@ -1,0 +1,332 @@
+"""The replay's fast paths equal the plain ones: bulk log parsing, batched wheel samples, vectorised dead reckoning,
+and the whole replay against one fed event by event through the Estimator's per-event interface."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import math
+import random
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from robotd import deadreckoning, ekf, kinematics, logfile, synthlog
+from robotd.config import RobotdConfig, parse
+from robotd.estimator import Estimator, TrackState
+from robotd.logfile import IpsFix, IpsLost, LogWriter, SensorLog, Truth, TwistSample, Wheels
+from robotd.metrics import TruthTrack, score
+from robotd.replay import OUTPUT_PERIOD_S, replay
+
+GEOMETRY = kinematics.Geometry()
+CPR = 6800
+
+# lines the bulk parser must send to the per-line reader, which then accepts or reports them as json.loads would
+ODD_LINES = [
+    '{"t": 1.50, "type": "wheels", "ticks": [1, 2, 3, 4]}',  # valid, not in the writer's number form
+    '{"t": 01.5, "type": "wheels", "ticks": [1, 2, 3, 4]}',  # leading zero: invalid JSON
+    '{"t": +1.5, "type": "wheels", "ticks": [1, 2, 3, 4]}',
+    '{"t": .5, "type": "wheels", "ticks": [1, 2, 3, 4]}',
+    '{"t": 5., "type": "wheels", "ticks": [1, 2, 3, 4]}',
+    '{"t": -.5, "type": "wheels", "ticks": [1, 2, 3, 4]}',
+    '{"t": 1.e2, "type": "wheels", "ticks": [1, 2, 3, 4]}',
+    '{"t": 2.6, "type": "truth", "x": 1.E2, "y": 2.0, "theta": 0.1}',
+    '{"t": 2.6, "type": "truth", "x": 1E+2, "y": 2.0, "theta": -0.1e-3}',  # valid
+    '{"t": 2.6, "type": "truth", "x": 1+2, "y": 2.0, "theta": 0.1}',
+    '{"t": -0, "type": "wheels", "ticks": [1, 2, 3, 4]}',  # the integer -0 is 0, not -0.0
+    '{"t": 1e400, "type": "wheels", "ticks": [1, 2, 3, 4]}',
+    '{"t": 2.5, "type": "wheels", "ticks": [1, 2, 3.0, 4]}',  # a tick that is not an integer
+    '{"t": 2.5, "type": "wheels", "ticks": [1, 2, 3, 1e3]}',
+    '{"t": 2.5, "type": "wheels", "ticks": [1, 2, 3, 007]}',
+    '{"t": 2.5, "type": "wheels", "ticks": [1, 2, 3]}',
+    '{"t": 2.5, "type": "wheels", "ticks": [1, 2, 3, 4, 5]}',
+    '{"t": 2.5, "type": "wheels", "ticks": [1, 2, 3, true]}',
+    '{"t": NaN, "type": "wheels", "ticks": [1, 2, 3, 4]}',
+    '{"t": 2.5, "type": "wheels", "ticks": [1, 2, 3, 4]} trailing',
+    '{"t": 2.5, "type": "wheels", "ticks": [1, 2, 3, 4], "extra": 1}',
+    '{"t": {"t": 2.5, "type": "wheels", "ticks": [1, 2, 3, 4]}]}',
+    '{"t": 2.6, "type": "truth", "x": 1.0, "theta": 0.1, "y": 2.0}',  # keys in another order
+    '{"t": 2.6, "type": "truth", "x": 1.0, "y": 2.0}',  # no heading
+    '{"t": 2.6, "type": "truth", "x": 1.0, "y": 2.0, "theta": 0.1}\r',
+    '{"t": 2.7, "type": "ips", "x": 1.0, "y": 2.0, "z": 0.0, "t_meas": Infinity}',
+    '{"t": 2.7, "type": "ips", "x": 1.0, "y": 2.0, "z": 0.0}',
+    '{"t": 2.7, "type": "ips", "x": 1.0, "y": 2.0, "z": 0.0, "t_meas": 2.6\x02}',
+    '{"t": 2.8, "type": "lidar", "ranges": []}',
+    "{not json",
+    "[1, 2]",
+    "",
+    "   ",
+]
+
+
+def _canonical_lines(seed: int) -> list[str]:
+    meta, events = synthlog.generate(synthlog.SynthSpec(loops=1, side_m=0.5, ips_offset_m=(0.1, -0.05)), seed)
+    buffer = io.StringIO()
+    writer = LogWriter(buffer, meta)
+    for event in events:
+        writer.write(event)
+    return buffer.getvalue().splitlines(keepends=True)
+
+
+def _reference(lines: list[str]) -> SensorLog:
+    """The plain reader: every line through json.loads."""
+    log = SensorLog()
+    for number, line in enumerate(lines, start=1):
+        try:
+            item = logfile._parse_line(line)  # the per-line reader is the reference
+        except ValueError as error:
+            log.problems.append(f"line {number}: {error}")
+            continue
+        if isinstance(item, str):
+            log.unknown_types[item] += 1
+        elif isinstance(item, logfile.Meta):
+            log.meta = item
+        elif item is not None:
+            log.events.append(item)
+    return log
+
+
+def _same_events(a: list[logfile.Event], b: list[logfile.Event]) -> bool:
+    def key(event: logfile.Event) -> tuple[object, ...]:
+        values = dataclasses.astuple(event)
+        # NaN != NaN, and -0.0 == 0.0: compare floats by their text, which tells both apart
+        return (type(event), *(repr(v) for v in values))
+
+    return [key(e) for e in a] == [key(e) for e in b]
+
+
+def _assert_same(parsed: SensorLog, reference: SensorLog) -> None:
+    assert _same_events(parsed.events, reference.events)
+    assert parsed.problems == reference.problems
+    assert parsed.unknown_types == reference.unknown_types
+    assert parsed.meta == reference.meta
+
+
+@pytest.mark.parametrize("odd", ODD_LINES)
+def test_each_odd_line_among_standard_ones_is_read_as_json_would(odd: str) -> None:
+    lines = _canonical_lines(23)
+    lines.insert(len(lines) // 2, odd + "\n")
+    _assert_same(logfile.parse_lines(lines), _reference(lines))
+
+
+def test_bulk_parsing_equals_json_line_by_line_with_odd_lines_mixed_in(tmp_path: Path) -> None:
+    lines = _canonical_lines(21)
+    rng = random.Random(4)
+    mixed = list(lines)
+    for odd in ODD_LINES:
+        mixed.insert(rng.randrange(1, len(mixed)), odd + "\n")
+    reference = _reference(mixed)
+    assert len(reference.problems) >= 15  # the odd lines really are odd
+    _assert_same(logfile.parse_lines(mixed), reference)
+    _assert_same(logfile.parse_lines([line.rstrip("\n") for line in mixed]), _reference(mixed))
+    path = tmp_path / "mixed.jsonl"
+    path.write_text("".join(mixed).rstrip("\n"), encoding="utf-8")  # and a last line without its newline
+    _assert_same(logfile.read_log(path), reference)
+    columns = logfile.read_log(path).columns()
+    assert columns.time_span() == (reference.events[0].t, reference.events[-1].t)
+
+
+def test_a_log_of_standard_lines_takes_the_bulk_path_and_round_trips(tmp_path: Path) -> None:
+    lines = _canonical_lines(22)
+    path = tmp_path / "log.jsonl"
+    path.write_text("".join(lines), encoding="utf-8")
+    log = logfile.read_log(path)
+    _assert_same(log, _reference(lines))
+    columns = log.columns()
+    assert len(columns.wheels_t) == sum(1 for line in lines if '"wheels"' in line)
+    assert "".join(logfile.encode(e) + "\n" for e in log.events) == "".join(lines[1:])
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    edits=st.lists(
+        st.tuples(st.integers(0, 10**6), st.integers(0, 10**6), st.sampled_from(list('0-+.eE, "[]{}x\x01:'))),
+        min_size=1,
+        max_size=4,
+    ),
+    delete=st.booleans(),
+)
+def test_any_damage_to_standard_lines_is_read_as_json_would(edits: list[tuple[int, int, str]], delete: bool) -> None:
+    lines = [
+        '{"t": 0.01, "type": "wheels", "ticks": [0, -3, 12, 7]}\n',
+        '{"t": 0.02, "type": "truth", "x": 0.5, "y": -1.25, "theta": 3.0}\n',
+        '{"t": 0.03, "type": "ips", "x": 1.0, "y": 2.0, "z": 0.0, "t_meas": 0.01}\n',
+        '{"t": 0.04, "type": "wheels", "ticks": [1, -2, 13, 8]}\n',
+    ] * 3
+    for line_pick, position_pick, char in edits:
+        index = line_pick % len(lines)
+        line = lines[index]
+        position = position_pick % (len(line) - 1)
+        lines[index] = line[:position] + ("" if delete else char) + line[position + 1 :]
+    _assert_same(logfile.parse_lines(lines), _reference(lines))
+
+
+def _wheel_stream(seed: int) -> list[tuple[float, tuple[int, int, int, int]]]:
+    rng = random.Random(seed)
+    t, ticks = 0.0, [0, 0, 0, 0]
+    out = []
+    for _ in range(600):
+        t += rng.choice((0.01, 0.01, 0.013, 0.0, -0.02))  # repeats and steps back: dropped samples
+        ticks = [n + rng.randint(-5, 40) for n in ticks]
+        sample_t = math.nan if rng.random() < 0.01 else t
+        out.append((sample_t, (ticks[0], ticks[1], ticks[2], ticks[3])))
+    return out
+
+
+@pytest.mark.parametrize("period", [0.0, 0.05, 0.2])
+def test_batched_wheel_samples_equal_one_call_per_sample(period: float) -> None:
+    config = dataclasses.replace(RobotdConfig().ekf, predict_period_s=period)
+    one = Estimator(config, GEOMETRY, (0.05, 0.0), CPR)
+    batch = Estimator(config, GEOMETRY, (0.05, 0.0), CPR)
+    samples = _wheel_stream(8)
+    times = [t for t, _ in samples]
+    ticks = [k for _, k in samples]
+    rng = random.Random(9)
+    start = 0
+    for i, (t, k) in enumerate(samples):
+        one.on_wheels(t, k)
+        if rng.random() < 0.08 or i == len(samples) - 1:  # a fix or a pose between runs of samples
+            batch.on_wheel_samples(times, ticks, start, i + 1)
+            start = i + 1
+            if math.isfinite(t) and rng.random() < 0.5:
+                for est in (one, batch):
+                    est.on_fix(t, 0.01 * i, 0.0, t - 0.05)
+            a, b = one.pose(t if math.isfinite(t) else None), batch.pose(t if math.isfinite(t) else None)
+            assert a == b
+    assert one.counters == batch.counters
+    assert one.counters["dropped_out_of_order"] > 0
+    assert one.counters["dropped_non_finite"] > 0
+
+
+def test_vectorised_dead_reckoning_equals_the_sequential_estimator() -> None:
+    _, events = synthlog.generate(synthlog.SynthSpec(loops=2), 5)
+    wheels = [e for e in events if isinstance(e, Wheels)]
+    t = np.array([w.t for w in wheels])
+    ticks = np.array([w.ticks for w in wheels], dtype=np.int64)
+    config = dataclasses.replace(RobotdConfig().ekf, initial_pose=(0.0, 0.0, 0.0))
+    est = Estimator(config, GEOMETRY, (0.0, 0.0), CPR)
+    rng = random.Random(2)
+    record_t, record_after, expected = [], [], []
+    for when, after in [(-1.0, 0), (0.0, 0)]:  # records before any sample: the initial pose
+        record_t.append(when)
+        record_after.append(after)
+        expected.append((0.0, 0.0, 0.0))
+    for i, w in enumerate(wheels):
+        est.on_wheels(w.t, w.ticks)
+        if rng.random() < 0.3:
+            when = w.t + rng.choice((0.0, 0.004, -0.03))  # at the sample, between samples, and before it
+            pose = est.pose(when)
+            record_t.append(when)
+            record_after.append(i + 1)
+            expected.append((pose.x, pose.y, pose.theta))
+    assert deadreckoning.applies(t)
+    x, y, th = deadreckoning.poses_at(
+        t, ticks, np.array(record_t), np.array(record_after), GEOMETRY, CPR, config.predict_period_s
+    )
+    reference = np.array(expected)
+    assert np.max(np.abs(x - reference[:, 0])) < 1e-9
+    assert np.max(np.abs(y - reference[:, 1])) < 1e-9
+    assert np.max(np.abs(np.array([ekf.wrap_angle(v) for v in th - reference[:, 2]]))) < 1e-9
+    assert np.max(np.hypot(x, y)) > 1.0  # it did drive somewhere
+
+
+def _replay_event_by_event(log: SensorLog, config: RobotdConfig) -> dict[str, list[tuple[float, ...]]]:
+    """The replay written plainly: every event through the Estimator's per-event interface, three Estimators."""
+    robotd = Estimator(config.ekf, GEOMETRY, (0.1, -0.05), CPR)
+    paper = Estimator.paper_filter(config.ekf, GEOMETRY, CPR)
+    odometry = Estimator(dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0)), GEOMETRY, (0.1, -0.05), CPR)
+    tracks: dict[str, list[tuple[float, ...]]] = {"ekf": [], "paper": [], "odometry": []}
+    named = (("ekf", robotd), ("paper", paper), ("odometry", odometry))
+
+    def record(t: float) -> None:
+        for name, est in named:
+            pose = est.pose(t)
+            if est is odometry or pose.state is not TrackState.INITIALISING:
+                tracks[name].append((t, pose.x, pose.y, pose.theta))
+
+    last_out = -math.inf
+    for event in log.events:
+        if isinstance(event, Wheels):
+            for _, est in named:
+                est.on_wheels(event.t, event.ticks)
+        elif isinstance(event, TwistSample):
+            for _, est in named:
+                est.on_twist(event.t, event.vx, event.vy, event.wz)
+        elif isinstance(event, IpsFix):
+            robotd.on_fix(event.t, event.x, event.y, event.t_meas)
+            paper.on_fix(event.t, event.x, event.y, event.t_meas)
+            record(event.t)
+            last_out = event.t
+            continue
+        else:
+            if isinstance(event, IpsLost):
+                robotd.on_fix_lost(event.t)
+            continue
+        if event.t - last_out >= OUTPUT_PERIOD_S:
+            record(event.t)
+            last_out = event.t
+    return tracks
+
+
+@pytest.mark.parametrize("with_twists", [False, True])
+def test_the_replay_equals_feeding_every_event_to_the_estimators(with_twists: bool) -> None:
+    spec = synthlog.SynthSpec(loops=1, ips_offset_m=(0.1, -0.05), outlier_bursts_per_min=6.0)
+    meta, events = synthlog.generate(spec, 17)
+    if with_twists:  # a twist sample now and then: the odometry then runs as a third Estimator
+        events = [*events]
+        for k in range(100, len(events), 400):
+            events.insert(k, TwistSample(events[k - 1].t, 0.3, 0.0, 0.0))
+    log = SensorLog(meta=meta, events=events)
+    config = parse("")
+    result = replay(log, config)
+    plain = _replay_event_by_event(log, config)
+    for name, track in (("ekf", result.ekf), ("paper", result.paper)):
+        got = np.array([track.t, track.x, track.y, track.theta]).T
+        assert got.shape == np.array(plain[name]).shape
+        assert np.max(np.abs(got - np.array(plain[name]))) < 1e-9, name
+    # odometry: the replay placed its track on the true start; the same placement of the plain one must agree
+    odo = np.array(plain["odometry"])
+    assert len(result.odometry.t) == len(odo)
+    assert result.metrics is not None
+    truth = TruthTrack.from_samples([(e.t, e.x, e.y, e.theta) for e in events if isinstance(e, Truth)])
+    stats = score(truth, result.odometry.t, result.odometry.x, result.odometry.y, result.odometry.theta)
+    assert stats == result.metrics["odometry"]
+    x0, y0, th0, _ = truth.at(odo[:1, 0])
+    c, s = math.cos(th0[0]), math.sin(th0[0])
+    placed_x = x0[0] + odo[:, 1] * c - odo[:, 2] * s
+    placed_y = y0[0] + odo[:, 1] * s + odo[:, 2] * c
+    assert np.max(np.abs(placed_x - np.array(result.odometry.x))) < 1e-9
+    assert np.max(np.abs(placed_y - np.array(result.odometry.y))) < 1e-9
+
+
+def test_estimates_file_lines_are_the_specified_json(tmp_path: Path) -> None:
+    from robotd.replay import write_outputs  # noqa: PLC0415
+
+    meta, events = synthlog.generate(synthlog.SynthSpec(loops=1, side_m=0.5), 6)
+    result = replay(SensorLog(meta=meta, events=events), parse(""))
+    write_outputs(result, tmp_path)
+    rows = [json.loads(line) for line in (tmp_path / "estimates.jsonl").read_text().splitlines()]
+    assert len(rows) == len(result.ekf.t)
+    for row, t, x, cov in zip(rows, result.ekf.t, result.ekf.x, result.ekf.cov, strict=True):
+        assert set(row) == {"t", "x", "y", "theta", "cov"}
+        assert abs(row["t"] - t) <= 5e-7
+        assert abs(row["x"] - x) <= 5e-7
+        assert np.allclose(row["cov"], cov, rtol=1e-8, atol=0.0)
+
+
+def test_the_fused_prediction_equals_process_noise_then_predict() -> None:
+    rng = random.Random(12)
+    noise = ekf.ControlNoise(lin2=4e-4, lat2=9e-4, slip2=2.5e-3, turn2=2.5e-3, rel2=0.01, const_v2=0.01, const_w2=0.02)
+    for _ in range(2000):
+        x, y, th = rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-3, 3)
+        p = (rng.uniform(0, 1), rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), rng.uniform(0, 1), 0.01, 0.2)
+        vx, vy, wz, dt = rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-2, 2), rng.uniform(0.001, 0.2)
+        q = ekf.process_noise(th, vx, vy, wz, dt, noise)
+        ex, ey, _, ep = ekf.predict(x, y, th, p, vx, vy, 0.0, dt, q)
+        fx, fy, fp = ekf.predict_with_noise(x, y, th, p, vx, vy, dt, noise, wz)
+        assert (fx, fy) == (ex, ey)
+        assert np.allclose(fp, ep, rtol=0.0, atol=1e-15)
