@@ -138,7 +138,7 @@ def run(config: RobotdConfig, scenario: Scenario, seed: int) -> Iterator[Event]:
             control.next_us,
             teleop.next_us,
             max(now_us + 1, round(hedgehog.next_measurement_s * US)),
-            max(now_us + 1, math.ceil(hedgehog.next_arrival_s * US)) if hedgehog.next_arrival_s < math.inf else end_us,
+            max(now_us + 1, math.ceil(hedgehog.next_arrival_s * US)) if hedgehog.next_arrival_s < math.inf else end_us + 1,
             end_us + 1,
         )
         robot.step(duties, (next_us - now_us) / US)

@@ -137,3 +137,15 @@ def test_robotd_simulate_writes_a_log_with_truth_in_the_design_format(tmp_path: 
 def test_robotd_simulate_refuses_a_bad_loop_count(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["simulate", "square", "--out", str(tmp_path / "x.jsonl"), "--loops", "0"]) == 2
     assert "--loops" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(30)  # the failure this pins is a run that never returns
+@pytest.mark.parametrize("seed", [1, 2, 3, 4])
+def test_a_run_ends_whatever_the_beacons_timing(seed: int) -> None:
+    # Seed 3 of this slow, late beacon once ended its run with no packet in flight exactly at the last microsecond,
+    # and the clock stopped advancing: the run never ended.
+    config = sim_config(ips_rate_hz=4.0, ips_latency_s=(0.1, 0.3), ips_noise_m=0.06, initial_pose=(1.0, 2.0, 0.7))
+    scenario = build_scenario("square", scenario_params(config.sim), 2, seed)
+    events = list(itertools.islice(run(config, scenario, seed), 100_000))
+    assert len(events) < 100_000
+    assert events[-1].t >= scenario.duration_s
