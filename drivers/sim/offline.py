@@ -132,13 +132,15 @@ def run(config: RobotdConfig, scenario: Scenario, seed: int) -> Iterator[Event]:
         if truth.fire(now_us):
             pose = robot.body
             yield Truth(now, pose.x, pose.y, pose.theta)
+        # every candidate lies after now_us, so the clock always advances (end_us + 1 ends the loop)
+        arrival_us = math.ceil(hedgehog.next_arrival_s * US) if hedgehog.next_arrival_s < math.inf else end_us + 1
         next_us = min(
             truth.next_us,
             wheels.next_us,
             control.next_us,
             teleop.next_us,
             max(now_us + 1, round(hedgehog.next_measurement_s * US)),
-            max(now_us + 1, math.ceil(hedgehog.next_arrival_s * US)) if hedgehog.next_arrival_s < math.inf else end_us + 1,
+            max(now_us + 1, arrival_us),
             end_us + 1,
         )
         robot.step(duties, (next_us - now_us) / US)
