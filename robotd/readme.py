@@ -7,6 +7,7 @@ configuration reference from the schema, the results table from `robotd experime
 
 from __future__ import annotations
 
+import ast
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,8 +24,24 @@ def _file(path: str) -> Callable[[Path], str]:
     return read
 
 
+def module_map(root: Path) -> str:
+    """Every module of the two packages with the first line of its docstring: the architecture as it is."""
+    lines = ["```"]
+    for package in ("robotd", "drivers"):
+        for path in sorted((root / package).rglob("*.py")):
+            if path.name == "__main__.py":
+                continue
+            tree = ast.parse(path.read_text(encoding="utf-8"))
+            summary = " ".join((ast.get_docstring(tree) or "").strip().split("\n\n")[0].split())
+            name = path.relative_to(root).as_posix()
+            lines.append(f"{name:34s} {summary}".rstrip())
+    lines.append("```")
+    return "\n".join(lines) + "\n"
+
+
 # block name -> how to produce its content from the repository root
 BLOCKS: dict[str, Callable[[Path], str]] = {
+    "modules": module_map,
     "config-reference": lambda _root: config_reference(),
     "results": _file("docs/results/results.md"),
     "bench": _file("docs/bench.md"),
