@@ -31,7 +31,9 @@ P = (I - K H) P (I - K H)^T + K R K^T (Joseph form: stays symmetric positive def
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 Cov = tuple[float, float, float, float, float, float]
 """A symmetric 3x3 covariance as its upper triangle: (xx, xy, xt, yy, yt, tt)."""
@@ -150,9 +152,63 @@ def predict_with_noise(  # noqa: PLR0917 - as predict
     return x + dx, y + dy, p_new
 
 
-@dataclass(frozen=True, slots=True)
-class Innovation:
-    """What an IPS fix says against the prediction: nu = z - h(s), S = H P H^T + R, NIS = nu^T S^-1 nu."""
+MotionStep = Callable[[float, float, float, Cov, float, float, float, float], tuple[float, float, float, Cov]]
+"""(x, y, theta, P, vx, vy, wz, dt) -> (x', y', theta', P') for dt > 0: see motion_step."""
+
+
+def motion_step(noise: ControlNoise, *, midpoint: bool) -> MotionStep:
+    """The estimator's prediction step, with the noise's constants bound once (it runs ~200 000 times an hour).
+
+    x', y', P' are predict_with_noise(x, y, th, P, vx, vy, dt, noise, wz) at th = theta + wz dt / 2 (the midpoint
+    rule) or th = theta (the paper's Euler step), the same arithmetic; theta' = wrap_angle(theta + wz dt).
+    Without speed-proportional and constant terms (rel2 = const_v2 = const_w2 = 0, robotd's noise), those terms are
+    left out: they would add exact zeros to non-negative variances.
+    """
+    lin2, lat2, slip2, turn2 = noise.lin2, noise.lat2, noise.slip2, noise.turn2
+    rel2, const_v2, const_w2 = noise.rel2, noise.const_v2, noise.const_w2
+    cos, sin, hypot, pi = math.cos, math.sin, math.hypot, math.pi
+    plain = rel2 == 0.0 and const_v2 == 0.0 and const_w2 == 0.0 and min(lin2, lat2, slip2, turn2) >= 0.0
+
+    def step(  # noqa: PLR0917 - as predict
+        x: float, y: float, theta: float, p: Cov, vx: float, vy: float, wz: float, dt: float
+    ) -> tuple[float, float, float, Cov]:
+        th = theta + 0.5 * wz * dt if midpoint else theta
+        c, s = cos(th), sin(th)
+        speed = hypot(vx, vy)
+        inv_dt = 1.0 / dt
+        if plain:
+            m_vx = lin2 * speed * inv_dt
+            m_vy = lat2 * speed * inv_dt
+            m_wz = (slip2 * speed + turn2 * abs(wz)) * inv_dt
+        else:
+            m_vx = lin2 * speed * inv_dt + rel2 * vx * vx + const_v2
+            m_vy = lat2 * speed * inv_dt + rel2 * vy * vy + const_v2
+            m_wz = (slip2 * speed + turn2 * abs(wz)) * inv_dt + rel2 * wz * wz + const_w2
+        dt2 = dt * dt
+        dx = (vx * c - vy * s) * dt  # eq. 5
+        dy = (vx * s + vy * c) * dt
+        a = -dy  # eq. 6
+        b = dx
+        cc, ss = c * c, s * s
+        xx, xy, xt, yy, yt, tt = p
+        p_new = (  # eq. 7 with Q = G M G^T (whose theta cross terms are zero)
+            xx + 2.0 * a * xt + a * a * tt + dt2 * (cc * m_vx + ss * m_vy),
+            xy + a * yt + b * xt + a * b * tt + dt2 * c * s * (m_vx - m_vy),
+            xt + a * tt + 0.0,
+            yy + 2.0 * b * yt + b * b * tt + dt2 * (ss * m_vx + cc * m_vy),
+            yt + b * tt + 0.0,
+            tt + dt2 * m_wz,
+        )
+        return x + dx, y + dy, (theta + wz * dt + pi) % TWO_PI - pi, p_new
+
+    return step
+
+
+class Innovation(NamedTuple):
+    """What an IPS fix says against the prediction: nu = z - h(s), S = H P H^T + R, NIS = nu^T S^-1 nu.
+
+    A NamedTuple: as immutable as a frozen dataclass, and built several times faster (once or twice per fix).
+    """
 
     nu_x: float
     nu_y: float
@@ -232,10 +288,12 @@ __all__ = [
     "ControlNoise",
     "Cov",
     "Innovation",
+    "MotionStep",
     "chi2_gate_2dof",
     "cov_diag",
     "cov_full",
     "innovation",
+    "motion_step",
     "predict",
     "predict_with_noise",
     "process_noise",

@@ -230,10 +230,7 @@ class Estimator:
             return
         t = max(t, last.t)  # a fix may have carried the state past this input's time
         self._aligner.track(step_u, t - last.t)
-        entry = self._predictor.step(last, t, step_u)
-        entry.u = next_u
-        entry.step_u = step_u
-        self._history.append(entry)
+        self._history.append(self._predictor.input_step(last, t, step_u, next_u))
         self._last_input_t = t
 
     # --- fixes ------------------------------------------------------------------------------------
@@ -269,18 +266,19 @@ class Estimator:
             self.counters["late_fixes"] += 1
         base = history.entries[k]
         prior = self._predictor.step(base, t_meas, base.u) if t_meas > base.t else base
-        prior.u = base.u
         ox, oy = self._offset
-        r = self._fix_gate.r
+        gate = self._fix_gate
+        r = gate.r
         inn = ekf.innovation(prior.x, prior.y, prior.theta, prior.p, x, y, r, ox, oy)
-        verdict = self._fix_gate.judge(t_meas, inn, r)
-        if self._fix_gate.seeded:
-            self._aligner.record(t_meas, x, y)
-        fused = Entry(t_meas, prior.x, prior.y, prior.theta, prior.p, prior.u, None, (x, y, r, False))
+        verdict = gate.judge(t_meas, inn, r)
+        if gate.seeded:
+            self._aligner.record(x, y)
         if verdict is Verdict.ACCEPTED:
             fused = self._fuse(prior, x, y, r, inn)
-        elif verdict in (Verdict.SEEDED, Verdict.RECOVERED):
+        elif verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             fused = self._seed(prior, x, y, r, verdict)
+        else:
+            fused = Entry(t_meas, prior.x, prior.y, prior.theta, prior.p, prior.u, None, (x, y, r, False))
         history.rewrite(k, fused, self._replay_event)  # every later event again, from the corrected state
         if verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED or verdict is Verdict.ACCEPTED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
@@ -307,9 +305,7 @@ class Estimator:
             inn = ekf.innovation(moved.x, moved.y, moved.theta, moved.p, zx, zy, r, *self._offset)
             return self._fuse(moved, zx, zy, r, inn)
         assert event.step_u is not None
-        entry = self._predictor.step(prev, event.t, event.step_u)
-        entry.u, entry.step_u = event.u, event.step_u
-        return entry
+        return self._predictor.input_step(prev, event.t, event.step_u, event.u)
 
     def _fuse(self, prior: Entry, zx: float, zy: float, r: float, inn: ekf.Innovation) -> Entry:
         freeze = math.hypot(prior.u[0], prior.u[1]) < self.config.heading_min_speed_mps and not self.paper
@@ -367,8 +363,11 @@ class Estimator:
         """
         if self._fix_gate.state is TrackState.INITIALISING:
             return None
-        _, x, y, th, _, p = self._extrapolate(t)
-        return x, y, th, p
+        last = self._history.entries[-1]
+        if t > last.t > -math.inf:  # carried forward: the arithmetic of _extrapolate
+            _, x, y, th, _, p = self._extrapolate(t)
+            return x, y, th, p
+        return last.x, last.y, last.theta, last.p
 
     def _extrapolate(self, t: float | None) -> tuple[float, float, float, float, Twist3, ekf.Cov]:
         """Time, pose, twist in force and P of the newest state carried forward to t (see pose)."""

@@ -9,26 +9,17 @@ with its own heading and takes it when they disagree. Pure: no I/O.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 LN4 = 2.0 * math.log(2.0)  # median of a chi-square with 2 dof: |nu|^2 / sigma^2 has this median
 MAX_POINTS = 400  # a robot standing still must not grow a window forever
 
 
-@dataclass(slots=True)
-class AlignPoint:
-    """A fix (zx, zy) and the odometry-only beacon position (ox, oy) at its measurement time, in the window's frame."""
+class RotationFit(NamedTuple):
+    """The rotation of the odometry window onto the fixes, its std, the translation, and the window's odometry pose.
 
-    t: float
-    zx: float
-    zy: float
-    ox: float
-    oy: float
-
-
-@dataclass(frozen=True, slots=True)
-class RotationFit:
-    """The rotation of the odometry window onto the fixes, its std, the translation, and the window's odometry pose."""
+    A NamedTuple: as immutable as a frozen dataclass, and built several times faster (after most fixes).
+    """
 
     rotation: float
     sigma: float
@@ -38,45 +29,57 @@ class RotationFit:
 
 
 class HeadingAligner:
-    """The current window's odometry track and fixes; fits their rotation once enough travel was seen."""
+    """The current window's odometry track and fixes; fits their rotation once enough travel was seen.
+
+    The window's fixes (zx, zy) and the odometry-only beacon positions (ox, oy) paired with them are kept as four
+    columns, in the order the fit reads them.
+    """
 
     def __init__(self, window_m: float, offset: tuple[float, float], *, enabled: bool) -> None:
         self.window_m = window_m
         self.offset = offset
-        self.points: list[AlignPoint] | None = [] if enabled else None
+        self.enabled = enabled
+        self.zxs: list[float] = []
+        self.zys: list[float] = []
+        self.oxs: list[float] = []
+        self.oys: list[float] = []
         self.odo = (0.0, 0.0, 0.0)  # odometry-only pose since the window started
         self.dist = 0.0
         self.last_window_odo = (0.0, 0.0, 0.0)
 
     def restart(self) -> None:
         """Start a new window here (after a full window, a recovery or a re-alignment)."""
-        if self.points is not None:
+        if self.enabled:
             self.last_window_odo = self.odo
-            self.points = []
+            self.zxs, self.zys, self.oxs, self.oys = [], [], [], []
             self.odo = (0.0, 0.0, 0.0)
             self.dist = 0.0
 
     def track(self, u: tuple[float, float, float], dt: float) -> None:
         """Integrate the odometry-only pose over one input step of twist u (midpoint heading)."""
-        if self.points is None or dt <= 0.0:
+        if not self.enabled or dt <= 0.0:
             return
+        vx, vy, wz = u
         ax, ay, ath = self.odo
-        th = ath + 0.5 * u[2] * dt
+        th = ath + 0.5 * wz * dt
         c, s = math.cos(th), math.sin(th)
-        self.odo = (ax + (u[0] * c - u[1] * s) * dt, ay + (u[0] * s + u[1] * c) * dt, ath + u[2] * dt)
-        self.dist += math.hypot(u[0], u[1]) * dt
+        self.odo = (ax + (vx * c - vy * s) * dt, ay + (vx * s + vy * c) * dt, ath + wz * dt)
+        self.dist += math.hypot(vx, vy) * dt
 
-    def record(self, t_meas: float, zx: float, zy: float) -> None:
+    def record(self, zx: float, zy: float) -> None:
         """Pair a fix with the odometry-only beacon position now."""
-        points = self.points
-        if points is None:
+        if not self.enabled:
             return
         ax, ay, ath = self.odo
         ox, oy = self.offset
         c, s = math.cos(ath), math.sin(ath)
-        points.append(AlignPoint(t_meas, zx, zy, ax + ox * c - oy * s, ay + ox * s + oy * c))
-        if len(points) > MAX_POINTS:
-            del points[: MAX_POINTS // 2]
+        self.zxs.append(zx)
+        self.zys.append(zy)
+        self.oxs.append(ax + ox * c - oy * s)
+        self.oys.append(ay + ox * s + oy * c)
+        if len(self.zxs) > MAX_POINTS:
+            for column in (self.zxs, self.zys, self.oxs, self.oys):
+                del column[: MAX_POINTS // 2]
 
     def check(self, r: float) -> RotationFit | None:
         """The window's rotation fit once it has 40 % of its travel (None before, or when untrustworthy).
@@ -84,30 +87,32 @@ class HeadingAligner:
         A window that reached its full length is closed (a new one starts), so that a heading gone wrong at any time
         (unknown at start, a robot turned while carried, slip the model did not expect) is caught within one window.
         """
-        points = self.points
-        if points is None or len(points) < 6 or self.dist < 0.4 * self.window_m:
+        if not self.enabled or len(self.zxs) < 6 or self.dist < 0.4 * self.window_m:
             return None
-        fit = fit_rotation(points, 4.0 * math.sqrt(r))
+        fit = fit_rotation(self.oxs, self.oys, self.zxs, self.zys, 4.0 * math.sqrt(r))
+        odo = self.odo
         if self.dist >= self.window_m:
             self.restart()
         if fit is None:
             return None
         rotation, sigma, tx, ty = fit
-        return RotationFit(rotation, sigma, tx, ty, self.odo if self.points is points else self.last_window_odo)
+        return RotationFit(rotation, sigma, tx, ty, odo)
 
 
-def fit_rotation(points: list[AlignPoint], tolerance: float) -> tuple[float, float, float, float] | None:
-    """The rotation (and translation) taking odometry track onto fixes, least squares with outliers trimmed.
+def fit_rotation(
+    oxs: list[float], oys: list[float], zxs: list[float], zys: list[float], tolerance: float
+) -> tuple[float, float, float, float] | None:
+    """The rotation (and translation) taking the odometry track (oxs, oys) onto the fixes (zxs, zys), least squares
+    with outliers trimmed.
 
     Returns (rotation, its standard deviation, tx, ty) or None when the track is too short or too inconsistent.
     """
-    use = points
+    count = len(oxs)
+    cos, sin, hypot = math.cos, math.sin, math.hypot
     for _ in range(3):
-        n = len(use)
+        n = len(oxs)
         if n < 5:
             return None
-        zxs, zys = [p.zx for p in use], [p.zy for p in use]
-        oxs, oys = [p.ox for p in use], [p.oy for p in use]
         mzx, mzy, mox, moy = sum(zxs) / n, sum(zys) / n, sum(oxs) / n, sum(oys) / n
         dot = cross = spread = 0.0
         for pox, poy, pzx, pzy in zip(oxs, oys, zxs, zys, strict=True):
@@ -116,19 +121,20 @@ def fit_rotation(points: list[AlignPoint], tolerance: float) -> tuple[float, flo
             cross += ox * zy - oy * zx
             spread += ox * ox + oy * oy
         rotation = math.atan2(cross, dot)
-        c, s = math.cos(rotation), math.sin(rotation)
+        c, s = cos(rotation), sin(rotation)
         tx, ty = mzx - (mox * c - moy * s), mzy - (mox * s + moy * c)
         residuals = [
-            math.hypot(pzx - (tx + pox * c - poy * s), pzy - (ty + pox * s + poy * c))
+            hypot(pzx - (tx + pox * c - poy * s), pzy - (ty + pox * s + poy * c))
             for pox, poy, pzx, pzy in zip(oxs, oys, zxs, zys, strict=True)
         ]
-        median = sorted(residuals)[len(residuals) // 2]
+        median = sorted(residuals)[n // 2]
         bound = max(3.0 * median, tolerance)
-        keep = [p for p, e in zip(use, residuals, strict=True) if e <= bound]
-        if len(keep) == len(use):
+        keep = [i for i, e in enumerate(residuals) if e <= bound]
+        if len(keep) == n:
             break
-        use = keep
-    if len(use) < 0.7 * len(points):  # too many points off the fit: no trustworthy rotation in this window
+        oxs, oys = [oxs[i] for i in keep], [oys[i] for i in keep]
+        zxs, zys = [zxs[i] for i in keep], [zys[i] for i in keep]
+    if len(oxs) < 0.7 * count:  # too many points off the fit: no trustworthy rotation in this window
         return None
     if spread <= 0.0:
         return None
@@ -139,4 +145,4 @@ def fit_rotation(points: list[AlignPoint], tolerance: float) -> tuple[float, flo
     return rotation, sigma, tx, ty
 
 
-__all__ = ["LN4", "AlignPoint", "HeadingAligner", "RotationFit", "fit_rotation"]
+__all__ = ["LN4", "HeadingAligner", "RotationFit", "fit_rotation"]

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 from robotd import ekf
 
 Twist3 = tuple[float, float, float]
-TWO_PI = ekf.TWO_PI
 TRIM_MIN_ENTRIES = 64  # trimming is amortised: a few dozen entries are cheaper to keep than to cut one by one
 
 
@@ -40,17 +39,23 @@ class Predictor:
     def __init__(self, noise: ekf.ControlNoise, *, midpoint: bool) -> None:
         self.noise = noise
         self.midpoint = midpoint
+        self._move = ekf.motion_step(noise, midpoint=midpoint)
 
     def step(self, prev: Entry, t: float, u: Twist3) -> Entry:
         """The state predicted from prev to t with twist u; its `u` is u, it records no event."""
         dt = t - prev.t
         if dt <= 0.0:
             return Entry(t, prev.x, prev.y, prev.theta, prev.p, u, None, None)
-        vx, vy, wz = u
-        th = prev.theta + 0.5 * wz * dt if self.midpoint else prev.theta
-        x, y, p = ekf.predict_with_noise(prev.x, prev.y, th, prev.p, vx, vy, dt, self.noise, wz)
-        theta = (prev.theta + wz * dt + math.pi) % TWO_PI - math.pi  # ekf.wrap_angle, inlined
+        x, y, theta, p = self._move(prev.x, prev.y, prev.theta, prev.p, u[0], u[1], u[2], dt)
         return Entry(t, x, y, theta, p, u, None, None)
+
+    def input_step(self, prev: Entry, t: float, step_u: Twist3, next_u: Twist3) -> Entry:
+        """The entry of an input event: the state predicted from prev to t with step_u, next_u in force after t."""
+        dt = t - prev.t
+        if dt <= 0.0:
+            return Entry(t, prev.x, prev.y, prev.theta, prev.p, next_u, step_u, None)
+        x, y, theta, p = self._move(prev.x, prev.y, prev.theta, prev.p, step_u[0], step_u[1], step_u[2], dt)
+        return Entry(t, x, y, theta, p, next_u, step_u, None)
 
 
 class History:

@@ -1,16 +1,18 @@
 """Bulk parsing of the sensor log's standard lines: wheels, truth and ips lines in the exact shape `encode` writes.
 
 A log is mostly wheel samples; parsing each line with json.loads costs microseconds a line. Here the lines of one
-type are checked and parsed together, at C speed: the template's constant parts ('{"t": ', ', "type": "wheels",
-"ticks": [', ...) are replaced by marker characters, and once the numbers are deleted the markers that remain must be
-exactly the template's, line after line (the shape check); the numbers are then parsed by json.loads as one array
-(the JSON grammar check). A batch that fails either check, or any line not in a template's shape, goes through the
-per-line reader instead, so the result (values, errors and their line numbers) is the same as parsing every line
-with json.loads.
+type are checked and parsed together, at C speed, as one ASCII byte string: the template's constant parts that hold
+number characters (', "type": "wheels", "ticks": [', ...) are replaced by marker bytes; once the numbers are deleted
+every line must read exactly as the template's constants (the shape check), no two constants may touch (no number
+missing) and there must be exactly one run of number characters per number (none inside a constant). The numbers are
+then checked against the JSON grammar where a C strtod is more lenient, and parsed by numpy's C reader in one call.
+A batch that fails any check, or any line not in a template's shape, goes through the per-line reader instead, so
+the result (values, errors and their line numbers) is the same as parsing every line with json.loads.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,8 +20,9 @@ import numpy as np
 import numpy.typing as npt
 
 NUMBER_CHARS = "0123456789.-+eE"
-_DELETE_NUMBERS = str.maketrans("", "", NUMBER_CHARS)
+NUMBER_BYTES = NUMBER_CHARS.encode("ascii")
 PREFIX = '{"t": '
+MARKERS = range(1, 8)  # control characters that stand for constants while checking; a text holding any is refused
 
 
 @dataclass(frozen=True, slots=True)
@@ -43,86 +46,148 @@ IPS = Template("ips", (', "type": "ips", "x": ', ', "y": ', ', "z": ', ', "t_mea
 TEMPLATES = (WHEELS, TRUTH, IPS)
 
 
+@dataclass(frozen=True, slots=True)
+class _Coding:
+    """How a template's lines are checked and reduced to numbers, as bytes (see _marked and _parse_numbers)."""
+
+    marked: tuple[tuple[bytes, bytes], ...]  # separators replaced by a marker byte, and their marker, longest first
+    shape: bytes  # a line once its numbers are deleted (with the markers in)
+    classes: bytes  # translation table: number bytes to '#', bytes that open a number's place to 'b', others '.'
+    commas: bytes  # translation table: markers and line ends to commas, the constant bytes below deleted
+    constant_bytes: bytes
+    tick_skeleton: bytes  # the integer tail once digits and '-' are deleted (empty unless integer_tail)
+
+
+def _coding(template: Template) -> _Coding:
+    """The checks of a template: separators holding number characters ('e' in "type") become markers, and so do
+    separators holding, before their end, a byte that ends a constant in front of a number (' ' in ', "y": ')."""
+    seps = template.separators
+    code = {sep: chr(MARKERS[i]) for i, sep in enumerate(sep for sep in seps if "e" in sep or "E" in sep)}
+    while True:
+        constants = [PREFIX, *(code.get(sep, sep) for sep in seps), template.suffix]
+        openers = {constant[-1] for constant in constants[:-1]}
+        inner = [sep for sep in seps if sep not in code and openers & set(sep[:-1])]
+        if not inner:
+            break
+        code[inner[0]] = chr(MARKERS[len(code)])
+    assert not openers & set(PREFIX[:-1] + template.suffix), template.kind  # (they cannot be marked)
+    # every constant must give exactly one comma between two numbers (the first none, the last none)
+    commas_in = [sum(c in code.values() or c == "," for c in constant) for constant in constants]
+    assert commas_in == [0] + [1] * len(seps) + [0], template.kind
+    classes = bytes(
+        ord("#") if chr(b) in NUMBER_CHARS else ord("b") if chr(b) in openers else ord(".") for b in range(256)
+    )
+    commas = bytearray(range(256))
+    for c in [*code.values(), "\n"]:
+        commas[ord(c)] = ord(",")
+    deleted = set("".join(constants)) - set(code.values()) - {","}
+    assert not deleted & set(NUMBER_CHARS), template.kind  # deleting them would cut into the numbers
+    tail = "".join(constants[-1 - template.integer_tail :]) if template.integer_tail else ""
+    return _Coding(
+        tuple((sep.encode("ascii"), code[sep].encode("ascii")) for sep in sorted(code, key=len, reverse=True)),
+        "".join(constants).encode("ascii"),
+        classes,
+        bytes(commas),
+        "".join(sorted(deleted)).encode("ascii"),
+        tail.encode("ascii"),
+    )
+
+
+_CODINGS = {template.kind: _coding(template) for template in TEMPLATES}
+
+
 def parse_batch(template: Template, lines: list[str]) -> npt.NDArray[np.float64] | None:
     """The numbers of lines (without newline) that all have the template's shape, one row a line; None otherwise."""
-    text = _numbers_text(template, lines)
-    if text is None:
+    marked = _marked(template, lines)
+    if marked is None:
         return None
-    try:
-        values = np.array(list(map(float, text[1:-1].split(","))), dtype=np.float64)
-    except ValueError:
-        return None
-    width = len(template.separators) + 1
-    if len(values) != len(lines) * width:
-        return None
-    return values.reshape(-1, width)
+    return _parse_numbers(template, marked, len(lines))
 
 
 def parse_wheels(lines: list[str]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]] | None:
     """Times and cumulative ticks (n x 4) of wheels lines in the exact standard shape; None if any is not."""
-    text = _numbers_text(WHEELS, lines)
-    if text is None:
+    marked = _marked(WHEELS, lines)
+    if marked is None:
         return None
-    tokens = text[1:-1].split(",")
-    if len(tokens) != 5 * len(lines):
+    # ticks must be JSON integers: no fraction, no exponent; with digits and '-' deleted, each line's tail is bare
+    coding = _CODINGS[WHEELS.kind]
+    if marked.translate(None, b"0123456789-").count(coding.tick_skeleton) != len(lines):
         return None
-    times = tokens[0::5]
-    del tokens[0::5]
-    if any(c in "".join(tokens) for c in ".eE+"):  # ticks must be JSON integers: no fraction, no exponent
+    values = _parse_numbers(WHEELS, marked, len(lines))
+    if values is None:
         return None
-    try:
-        t = np.array(list(map(float, times)), dtype=np.float64)
-        # JSON integers read through float() (several times faster than int()): exact below 2^53
-        exact = np.array(list(map(float, tokens)), dtype=np.float64)
-    except ValueError:
-        return None
+    exact = values[:, 1:]
+    # JSON integers read as floats (much faster than int()): exact below 2^53
     if not np.all(np.abs(exact) < 2.0**53):
         return None
-    return t, exact.astype(np.int64).reshape(-1, 4)
+    return np.ascontiguousarray(values[:, 0]), exact.astype(np.int64)
 
 
-def _numbers_text(template: Template, lines: list[str]) -> str | None:
-    """',n1,n2,...,' : every line's numbers in order, if every line has exactly the template's shape."""
+def _marked(template: Template, lines: list[str]) -> bytes | None:
+    """The lines as one ASCII text, separators replaced by their markers, if every line has exactly the template's
+    shape: its constants, in order, with one run of number characters (non-empty) in each number's place."""
     if not lines:
         return None
     block = "\n".join(lines)
-    if any(chr(c) in block for c in range(1, 8)):  # the markers must not occur in the text itself
+    if not block.isascii():  # the template and JSON numbers are ASCII
         return None
-    # constants holding 'e' or 'E' (number characters, e.g. in "type") become one marker character each, longest
-    # first; all other constants stay as they are: once the numbers are deleted, every line must read exactly as
-    # the template's constants
-    lettered = sorted({sep for sep in template.separators if "e" in sep or "E" in sep}, key=len, reverse=True)
-    code = {sep: chr(2 + i) for i, sep in enumerate(lettered)}
-    for sep in lettered:
-        block = block.replace(sep, code[sep])
-    shape = PREFIX + "".join(code.get(sep, sep) for sep in template.separators) + template.suffix
-    if block.translate(_DELETE_NUMBERS) != "\n".join([shape] * len(lines)):
+    marked = block.encode("ascii")
+    if any(marker in marked for marker in MARKERS):  # the markers must not occur in the text itself
         return None
-    # the numbers, comma-separated: markers and line ends become commas, the constants' other characters go
-    table: dict[int, str | None] = dict.fromkeys(map(ord, set(shape) - set(code.values()) - {","}))
-    table.update({ord(c): "," for c in code.values()})
-    table[ord("\n")] = ","
-    text = "," + block.translate(table) + ","
-    return text if json_numbers(text) else None
+    coding = _CODINGS[template.kind]
+    for sep, marker in coding.marked:
+        marked = marked.replace(sep, marker)
+    # with the numbers deleted, every line reads as the template's constants
+    if marked.translate(None, NUMBER_BYTES) != b"\n".join([coding.shape] * len(lines)):
+        return None
+    # every run of number bytes opens right after a constant's last byte ('b#'; never '.#', nor at a line's start),
+    # and there are as many as numbers: the bytes that open a number's place occur only there (the shape), so each
+    # place holds exactly one run, none is empty and no constant has number bytes inside
+    classes = (b"\n" + marked).translate(coding.classes)
+    if b".#" in classes or classes.count(b"b#") != len(lines) * (len(template.separators) + 1):
+        return None
+    return marked
 
 
-def json_numbers(text: str) -> bool:
-    """Whether a comma-separated (and comma-enclosed) list of tokens made of NUMBER_CHARS holds only tokens that are
-    JSON numbers, where float() and int() would read the same value as json.loads does.
+def _parse_numbers(template: Template, marked: bytes, count: int) -> npt.NDArray[np.float64] | None:
+    """The numbers of checked lines (see _marked), one row a line, if each is a JSON number; None otherwise."""
+    coding = _CODINGS[template.kind]
+    text = b"," + marked.translate(coding.commas, coding.constant_bytes) + b","
+    if not json_numbers(text):
+        return None
+    try:
+        # the C parser reads what float() reads, correctly rounded; it refuses a token float() would refuse
+        with warnings.catch_warnings(action="error"):
+            values = np.fromstring(text[1:-1], dtype=np.float64, sep=",")
+    except (ValueError, DeprecationWarning):
+        return None
+    width = len(template.separators) + 1
+    if len(values) != count * width:
+        return None
+    return values.reshape(-1, width)
 
-    float() also reads '+1', '.5', '5.', '1.e3' and leading zeros, which JSON rejects, and reads the JSON integer
-    '-0' as -0.0 where json.loads gives the integer 0: those are refused. What float() refuses (e.g. '1e', '1-2')
-    raises later.
+
+def json_numbers(text: bytes) -> bool:
+    """Whether a comma-separated (and comma-enclosed) list of non-empty tokens made of NUMBER_CHARS holds only tokens
+    that are JSON numbers, where a C strtod would read the same value as json.loads does.
+
+    strtod also reads '+1', '.5', '5.', '1.e3' and leading zeros, which JSON rejects, and reads the JSON integer
+    '-0' as -0.0 where json.loads gives the integer 0: those are refused. What strtod refuses (e.g. '1e', '1-2')
+    fails later.
     """
-    if text.count("+") != text.count("e+") + text.count("E+"):
+    if b"+" in text and text.count(b"+") != text.count(b"e+") + text.count(b"E+"):
         return False
-    if ",." in text or "-." in text or ".," in text or ".e" in text or ".E" in text or ",-0," in text:
+    # every '.' between two digits (no '.5', '-.5', '5.', '5.e3'); 'd.d' cannot overlap in valid text
+    if text.count(b".") != text.translate(_D_FOR_DIGITS).count(b"d.d"):
         return False
-    digits = text.translate(_ONE_FOR_DIGITS)  # leading zeros: ",0" or ",-0" followed by a digit
-    return ",00" not in digits and ",01" not in digits and ",-00" not in digits and ",-01" not in digits
+    if b",-0," in text:
+        return False
+    zeros = text.translate(_ONE_FOR_DIGITS, b"-")  # leading zeros: ",0" or ",-0" followed by a digit
+    return b",00" not in zeros and b",01" not in zeros
 
 
-_ONE_FOR_DIGITS = str.maketrans("23456789", "11111111")
+_D_FOR_DIGITS = bytes.maketrans(b"0123456789", b"dddddddddd")
+_ONE_FOR_DIGITS = bytes.maketrans(b"23456789", b"11111111")
 
 
 # What each line is, in file order. Events: wheels, truth, other (what logfile.Columns keeps); while parsing also:

@@ -2,8 +2,9 @@
 
 Every method sees the same events in arrival order; an estimate is taken after each fix and at most every
 `OUTPUT_PERIOD_S` of input time, from the events that arrived until then (causal). Odometry alone is given the
-true initial pose when the log holds truth (its heading fitted to the first metre of truth when truth has none):
-the most favourable start, so that it is a fair baseline. The filters start from the configuration.
+true initial pose (its heading fitted to the first metre of truth when truth has none): the most favourable start,
+so that it is a fair baseline. The filters start from the configuration. The baselines exist only to be scored: a
+log without truth runs robotd's filter alone (their tracks stay empty).
 """
 
 from __future__ import annotations
@@ -41,7 +42,10 @@ class Track:
 
 @dataclass(slots=True)
 class ReplayResult:
-    """What a replay produced: robotd's estimates, every method's track and score, counters and problems."""
+    """What a replay produced: robotd's estimates, every method's track and score, counters and problems.
+
+    Without truth in the log, `paper` and `odometry` are empty and `metrics` is None.
+    """
 
     ekf: Track
     paper: Track
@@ -114,7 +118,7 @@ def _record_odometry(track: Track, t: float, est: Estimator) -> None:
 
 
 def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
-    """Run the three methods over a parsed log and score them when it holds truth.
+    """Run the three methods over a parsed log and score them when it holds truth (robotd's filter alone without).
 
     The log is read as columns (SensorLog.columns): wheel samples reach the filters in runs between the other
     events (Estimator.on_wheel_samples), the same inputs in the same order as one on_wheels call each. Odometry alone
@@ -122,9 +126,10 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     samples, and with a third Estimator otherwise.
     """
     geometry, offset, cpr, problems = robot_from_log(log, config)
-    robotd = Estimator(config.ekf, geometry, offset, cpr)
-    paper = Estimator.paper_filter(config.ekf, geometry, cpr)
     columns = log.columns()
+    scored = len(columns.truth) > 0  # the baselines exist only to be scored: without truth, robotd's filter alone
+    robotd = Estimator(config.ekf, geometry, offset, cpr)
+    paper = Estimator.paper_filter(config.ekf, geometry, cpr) if scored else None
     times: list[float] = columns.wheels_t.tolist()
     ticks: list[tuple[int, int, int, int]] = list(
         zip(*(column.tolist() for column in columns.wheels_ticks.T), strict=True)
@@ -133,10 +138,10 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     after: list[int] = columns.others_after().tolist()
     vectorised = deadreckoning.applies(columns.wheels_t) and not any(type(e) is TwistSample for e in others)
     odometry: Estimator | None = None
-    if not vectorised:
+    if scored and not vectorised:
         odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later
         odometry = Estimator(odo_config, geometry, offset, cpr)
-    filters = (robotd, paper) if odometry is None else (robotd, paper, odometry)
+    filters = tuple(est for est in (robotd, paper, odometry) if est is not None)
     tracks = (Track(), Track(), Track())
     odo_records: tuple[list[float], list[int]] = ([], [])  # record times and wheel samples before them
     fixes: list[tuple[float, float, float]] = []
@@ -146,6 +151,8 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
 
     def record(t: float, samples: int) -> None:
         _record(tracks[0], t, robotd)
+        if paper is None:
+            return
         _record(tracks[1], t, paper)
         if odometry is not None:
             _record_odometry(tracks[2], t, odometry)
@@ -174,7 +181,8 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
             diagnostic = robotd.on_fix(event.t, event.x, event.y, event.t_meas)
             if diagnostic is not None:
                 diagnostics.append(diagnostic)
-            paper.on_fix(event.t, event.x, event.y, event.t_meas)
+            if paper is not None:
+                paper.on_fix(event.t, event.x, event.y, event.t_meas)
             if math.isfinite(event.x) and math.isfinite(event.y) and math.isfinite(event.t_meas):
                 fixes.append((event.t_meas, event.x, event.y))
             record(event.t, fed)
@@ -187,8 +195,9 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
                 last_out = event.t
         elif type(event) is IpsLost:
             robotd.on_fix_lost(event.t)
-            paper.on_fix_lost(event.t)
-    if odometry is None:
+            if paper is not None:
+                paper.on_fix_lost(event.t)
+    if scored and odometry is None:
         record_t = np.array(odo_records[0], dtype=np.float64)
         ox, oy, oth = deadreckoning.poses_at(
             columns.wheels_t,
@@ -204,7 +213,7 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
         tracks[2].y.extend(oy.tolist())
         tracks[2].theta.extend(oth.tolist())
     metrics = None
-    if len(columns.truth):
+    if scored:
         reference = TruthTrack.from_array(columns.truth)
         _place_odometry(tracks[2], reference)
         metrics = {
@@ -213,8 +222,6 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
             "paper_ekf": score(reference, tracks[1].t, tracks[1].x, tracks[1].y, tracks[1].theta),
             "ekf": score(reference, tracks[0].t, tracks[0].x, tracks[0].y, tracks[0].theta),
         }
-    else:
-        _place(tracks[2], *config.ekf.initial_pose)
     return ReplayResult(
         ekf=tracks[0],
         paper=tracks[1],

@@ -56,6 +56,11 @@ ODD_LINES = [
     '{"t": 2.7, "type": "ips", "x": 1.0, "y": 2.0, "z": 0.0}',
     '{"t": 2.7, "type": "ips", "x": 1.0, "y": 2.0, "z": 0.0, "t_meas": 2.6\x02}',
     '{"t": 2.8, "type": "lidar", "ranges": []}',
+    '{"t"1: 2.5, "type": "wheels", "ticks": [1, 2, 3, 4]}',  # number characters inside a constant
+    '{"t": 2.5, "type": "wheels", "ticks": [1,5 2, 3, 4]}',
+    '1{"t": 2.5, "type": "wheels", "ticks": [1, 2, 3, 4]}',
+    '{"t": 2.5, "type": "wheels", "ticks": [1, 2, 3, 4]}5',
+    '{"t": 2.6, "type": "truth", "x": 1.0, 2"y": , "theta": 0.1}',  # and a number's place left empty
     "{not json",
     "[1, 2]",
     "",
@@ -330,3 +335,40 @@ def test_the_fused_prediction_equals_process_noise_then_predict() -> None:
         fx, fy, fp = ekf.predict_with_noise(x, y, th, p, vx, vy, dt, noise, wz)
         assert (fx, fy) == (ex, ey)
         assert np.allclose(fp, ep, rtol=0.0, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    ("noise", "midpoint"),
+    [
+        (ekf.ControlNoise(lin2=4e-4, lat2=9e-4, slip2=2.5e-3, turn2=2.5e-3), True),  # robotd's: the plain path
+        (ekf.ControlNoise(const_v2=0.01, const_w2=0.02), False),  # the paper's
+        (ekf.ControlNoise(lin2=4e-4, lat2=9e-4, slip2=2.5e-3, turn2=2.5e-3, rel2=0.01, const_v2=0.01), True),
+    ],
+)
+def test_the_bound_motion_step_is_bit_for_bit_the_fused_prediction(noise: ekf.ControlNoise, midpoint: bool) -> None:
+    step = ekf.motion_step(noise, midpoint=midpoint)
+    rng = random.Random(13)
+    for _ in range(2000):
+        x, y, th = rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-3.2, 3.2)
+        p = (rng.uniform(0, 1), rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), rng.uniform(0, 1), -0.0, 0.2)
+        vx, vy, wz = (rng.choice((0.0, -0.0, rng.uniform(-1, 1))) for _ in range(3))
+        dt = rng.uniform(0.001, 0.2)
+        at = th + 0.5 * wz * dt if midpoint else th
+        ex, ey, ep = ekf.predict_with_noise(x, y, at, p, vx, vy, dt, noise, wz)
+        got = step(x, y, th, p, vx, vy, wz, dt)
+        # repr tells -0.0 from 0.0: the same floats, not merely close ones
+        assert repr(got) == repr((ex, ey, ekf.wrap_angle(th + wz * dt), ep))
+
+
+def test_without_truth_only_robotds_filter_runs_and_its_estimates_do_not_change() -> None:
+    meta, events = synthlog.generate(synthlog.SynthSpec(loops=1, ips_offset_m=(0.1, 0.0)), 19)
+    with_truth = replay(SensorLog(meta=meta, events=list(events)), parse(""))
+    without = replay(SensorLog(meta=meta, events=[e for e in events if type(e) is not Truth]), parse(""))
+    assert without.metrics is None
+    assert without.paper.t == []  # nothing of the baselines would be written: not computed
+    assert without.odometry.t == []
+    assert with_truth.paper.t
+    assert with_truth.odometry.t
+    assert repr(dataclasses.astuple(without.ekf)) == repr(dataclasses.astuple(with_truth.ekf))
+    assert without.counters == with_truth.counters
+    assert repr(without.diagnostics) == repr(with_truth.diagnostics)
