@@ -108,6 +108,11 @@ class Estimator:
         self._tick_last: tuple[int, int, int, int] | None = None
         self._tick_last_t = -math.inf
         self._aligner = HeadingAligner(c.heading_align_m, self._offset, enabled=c.heading_align_m > 0.0 and not paper)
+        # Whether a window's fit has agreed with the filter's heading since start-up (or since the robot was carried):
+        # until then the heading is unknown and one disagreeing window re-aligns it; after it, a window that
+        # disagrees is only a suspect (an echo or a slip can bend one window), confirmed by the next window.
+        self._heading_confirmed = False
+        self._suspect: tuple[int, float, float] | None = None  # (window, signed disagreement, its sigma)
         self.counters: dict[str, int] = dict.fromkeys(
             (
                 "wheels",
@@ -229,7 +234,7 @@ class Estimator:
             self._last_input_t = t
             return
         t = max(t, last.t)  # a fix may have carried the state past this input's time
-        self._aligner.track(step_u, t - last.t)
+        self._aligner.track(step_u, t - last.t, t)
         self._history.append(self._predictor.input_step(last, t, step_u, next_u))
         self._last_input_t = t
 
@@ -272,7 +277,7 @@ class Estimator:
         inn = ekf.innovation(prior.x, prior.y, prior.theta, prior.p, x, y, r, ox, oy)
         verdict = gate.judge(t_meas, inn, r)
         if gate.seeded:
-            self._aligner.record(x, y)
+            self._aligner.record(x, y, t_meas)
         if verdict is Verdict.ACCEPTED:
             fused = self._fuse(prior, x, y, r, inn)
         elif verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
@@ -316,6 +321,7 @@ class Estimator:
         """Move the beacon onto the agreeing fixes (their median innovation), forgetting the position's past."""
         if verdict is Verdict.RECOVERED:
             self._aligner.restart()  # carried robots may have been turned too: check the heading again
+            self._heading_confirmed = False
         dx, dy = self._fix_gate.seed_shift(verdict)
         p = (r, 0.0, 0.0, r, 0.0, prior.p[5])
         return Entry(prior.t, prior.x + dx, prior.y + dy, prior.theta, p, prior.u, None, (zx, zy, r, False))
@@ -331,10 +337,25 @@ class Estimator:
         # the filter's heading at the window's start is its current heading less the odometry turn since
         ax, ay, ath = fit.window_odo
         filter_start = ekf.wrap_angle(last.theta - ath)
-        disagreement = abs(ekf.wrap_angle(fit.rotation - filter_start))
+        signed = ekf.wrap_angle(fit.rotation - filter_start)
         sigma = fit.sigma
-        if sigma > 0.15 or disagreement <= max(4.0 * math.sqrt(sigma * sigma + last.p[5]), MIN_REALIGN_RAD):
+        if sigma > 0.15:
             return
+        if abs(signed) <= max(4.0 * math.sqrt(sigma * sigma + last.p[5]), MIN_REALIGN_RAD):
+            if abs(signed) <= 3.0 * math.sqrt(sigma * sigma + last.p[5]):
+                self._heading_confirmed = True
+                self._suspect = None
+            return
+        if self._heading_confirmed:
+            suspect, window = self._suspect, fit.window
+            if suspect is None or suspect[0] == window:
+                if suspect is None:
+                    self._suspect = (window, signed, sigma)
+                return
+            if abs(ekf.wrap_angle(signed - suspect[1])) > 3.0 * math.hypot(sigma, suspect[2]):
+                self._suspect = (window, signed, sigma)  # two windows that disagree with each other: neither is proof
+                return
+        self._suspect = None
         self.counters["heading_realigned"] += 1
         c, s = math.cos(fit.rotation), math.sin(fit.rotation)
         x, y = fit.tx + ax * c - ay * s, fit.ty + ax * s + ay * c

@@ -9,10 +9,12 @@ with its own heading and takes it when they disagree. Pure: no I/O.
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import NamedTuple
 
 LN4 = 2.0 * math.log(2.0)  # median of a chi-square with 2 dof: |nu|^2 / sigma^2 has this median
 MAX_POINTS = 400  # a robot standing still must not grow a window forever
+TRAIL_S = 5.0  # how far back odometry poses are kept to pair a late fix with where the robot was when measured
 
 
 class RotationFit(NamedTuple):
@@ -26,6 +28,7 @@ class RotationFit(NamedTuple):
     tx: float
     ty: float
     window_odo: tuple[float, float, float]
+    window: int  # which window the fit is of (successive windows have successive numbers)
 
 
 class HeadingAligner:
@@ -46,6 +49,11 @@ class HeadingAligner:
         self.odo = (0.0, 0.0, 0.0)  # odometry-only pose since the window started
         self.dist = 0.0
         self.last_window_odo = (0.0, 0.0, 0.0)
+        self.t = -math.inf  # time of self.odo
+        # (t, x, y, theta) of the odometry-only pose in this window, newest last: fixes are paired by their
+        # measurement time, so a late fix meets the pose the robot had when the beacon was measured
+        self.trail: deque[tuple[float, float, float, float]] = deque()
+        self.window = 0  # how many windows were started: tells the fits of successive windows apart
 
     def restart(self) -> None:
         """Start a new window here (after a full window, a recovery or a re-alignment)."""
@@ -54,23 +62,50 @@ class HeadingAligner:
             self.zxs, self.zys, self.oxs, self.oys = [], [], [], []
             self.odo = (0.0, 0.0, 0.0)
             self.dist = 0.0
+            self.trail.clear()
+            self.window += 1
 
-    def track(self, u: tuple[float, float, float], dt: float) -> None:
-        """Integrate the odometry-only pose over one input step of twist u (midpoint heading)."""
+    def track(self, u: tuple[float, float, float], dt: float, t: float) -> None:
+        """Integrate the odometry-only pose over one input step of twist u (midpoint heading) that ends at t."""
         if not self.enabled or dt <= 0.0:
             return
         vx, vy, wz = u
         ax, ay, ath = self.odo
+        trail = self.trail
+        if not trail:
+            trail.append((t - dt, ax, ay, ath))
         th = ath + 0.5 * wz * dt
         c, s = math.cos(th), math.sin(th)
         self.odo = (ax + (vx * c - vy * s) * dt, ay + (vx * s + vy * c) * dt, ath + wz * dt)
+        self.t = t
+        trail.append((t, *self.odo))
+        while len(trail) > 2 and trail[1][0] < t - TRAIL_S:
+            trail.popleft()
         self.dist += math.hypot(vx, vy) * dt
 
-    def record(self, zx: float, zy: float) -> None:
-        """Pair a fix with the odometry-only beacon position now."""
+    def _odo_at(self, t: float) -> tuple[float, float, float] | None:
+        """The odometry-only pose at time t (linear between tracked steps); None before the trail begins."""
+        trail = self.trail
+        if not trail or t >= trail[-1][0]:
+            return self.odo
+        if t < trail[0][0]:
+            return None
+        for k in range(len(trail) - 1, 0, -1):  # late fixes are recent: search from the newest end
+            t0, x0, y0, th0 = trail[k - 1]
+            if t0 <= t:
+                t1, x1, y1, th1 = trail[k]
+                f = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
+                return x0 + f * (x1 - x0), y0 + f * (y1 - y0), th0 + f * (th1 - th0)
+        return None
+
+    def record(self, zx: float, zy: float, t_meas: float) -> None:
+        """Pair a fix measured at t_meas with the odometry-only beacon position then (skipped if before the window)."""
         if not self.enabled:
             return
-        ax, ay, ath = self.odo
+        odo = self._odo_at(t_meas)
+        if odo is None:
+            return
+        ax, ay, ath = odo
         ox, oy = self.offset
         c, s = math.cos(ath), math.sin(ath)
         self.zxs.append(zx)
@@ -90,13 +125,13 @@ class HeadingAligner:
         if not self.enabled or len(self.zxs) < 6 or self.dist < 0.4 * self.window_m:
             return None
         fit = fit_rotation(self.oxs, self.oys, self.zxs, self.zys, 4.0 * math.sqrt(r))
-        odo = self.odo
+        odo, window = self.odo, self.window
         if self.dist >= self.window_m:
             self.restart()
         if fit is None:
             return None
         rotation, sigma, tx, ty = fit
-        return RotationFit(rotation, sigma, tx, ty, odo)
+        return RotationFit(rotation, sigma, tx, ty, odo, window)
 
 
 def fit_rotation(

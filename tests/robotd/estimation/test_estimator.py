@@ -229,3 +229,36 @@ def test_a_robot_at_rest_does_not_grow_uncertain() -> None:
     est.on_twist(101.0, 0.5, 0.0, 0.0)
     est.on_twist(102.0, 0.5, 0.0, 0.0)
     assert est.pose().cov[8] > before[8]  # heading uncertainty grows with distance (slip)
+
+
+def test_one_window_bent_by_an_echo_does_not_turn_a_confirmed_heading() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    x, y, th = _drive(est, 8.0, (0.3, 0.0, 0.0), noise=0.02)  # heading confirmed by the first windows
+    realigned = est.counters["heading_realigned"]
+    # for one window of travel the fixes follow a reflection that slides off at 35 degrees while the robot drives
+    # straight on: that window says the robot turned, the odometry and the next window say it did not
+    rng = random.Random(3)
+    t, bend = 8.0, math.radians(35)
+    for k in range(1, 21):
+        t += 0.125
+        x += 0.3 * 0.125
+        for step in range(1, 13):
+            est.on_twist(t - 0.125 + step * 0.125 / 12, 0.3, 0.0, 0.0)
+        d = 0.3 * 0.125 * k
+        est.on_fix(t, x - d + d * math.cos(bend) + rng.gauss(0, 0.02), y + d * math.sin(bend) + rng.gauss(0, 0.02), t)
+    x, y, th = _drive(est, 16.0, (0.3, 0.0, 0.0), start=t, true_start=(x, y, th), noise=0.02, seed=4)
+    assert est.counters["heading_realigned"] == realigned
+    # the fused fixes of the bent window leave a few degrees, which the fixes after it wear down
+    assert abs(math.remainder(est.pose().theta - th, 2 * math.pi)) < 0.1
+    assert math.hypot(est.pose().x - x, est.pose().y - y) < 0.08
+
+
+def test_a_robot_turned_on_the_spot_behind_the_filters_back_is_realigned_after_two_windows() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    x, y, th = _drive(est, 8.0, (0.3, 0.0, 0.0), noise=0.02)
+    realigned = est.counters["heading_realigned"]
+    # picked up and put down in place, turned by 60 degrees: the fixes do not jump, only the direction of travel
+    x, y, th = _drive(est, 20.0, (0.3, 0.0, 0.0), start=8.0, true_start=(x, y, th + math.radians(60)), noise=0.02)
+    assert est.counters["heading_realigned"] == realigned + 1
+    assert abs(math.remainder(est.pose().theta - th, 2 * math.pi)) < 0.1
+    assert math.hypot(est.pose().x - x, est.pose().y - y) < 0.1
