@@ -175,7 +175,11 @@ class EkfConfig:
 
     initial_pose: tuple[float, float, float] = setting((0.0, 0.0, 0.0), "Initial x (m), y (m), theta (rad).")
     initial_sigma: tuple[float, float, float] = setting(
-        (1.0, 1.0, 0.1), "Initial standard deviation of x (m), y (m), theta (rad).", each(positive)
+        (1.0, 1.0, 3.14),
+        "Initial standard deviation of x (m), y (m), theta (rad). A theta above 0.5 rad means the heading is unknown:"
+        " the position then follows the fixes until a whole heading_align_m of driving gives the heading. Set it"
+        " small (0.1) only when the robot always starts facing initial_pose's theta.",
+        each(positive),
     )
     ips_sigma_m: float = setting(0.03, "Standard deviation of one IPS fix in x and y (paper's s_ips).", positive)
     gating: bool = setting(True, "Reject fixes whose Mahalanobis distance exceeds the chi-square gate.")

@@ -25,9 +25,11 @@ from dataclasses import dataclass
 from robotd import ekf, kinematics
 from robotd.config import EkfConfig
 from robotd.fixgate import FixGate, TrackState, Verdict
-from robotd.heading import HeadingAligner
+from robotd.heading import HeadingAligner, RotationFit
 from robotd.history import Entry, History, Predictor, Twist3, initial_entry
 
+# An initial heading standard deviation above this says the heading is unknown (the robot was put down anywhere).
+HEADING_KNOWN_SIGMA_RAD = 0.5
 MIN_REALIGN_RAD = 0.35  # smaller heading errors are the EKF's own business: it corrects them from fixes in motion
 
 
@@ -97,6 +99,7 @@ class Estimator:
                 turn2=c.turn_heading_sigma_rad**2,
             )
         self._predictor = Predictor(self._noise, midpoint=not paper)
+        self._predictor.heading_known = paper or c.initial_sigma[2] <= HEADING_KNOWN_SIGMA_RAD
         self._history = History(
             initial_entry(c.initial_pose, ekf.cov_diag(*c.initial_sigma)), c.history_s, keep_past=self._latency
         )
@@ -313,7 +316,9 @@ class Estimator:
         return self._predictor.input_step(prev, event.t, event.step_u, event.u)
 
     def _fuse(self, prior: Entry, zx: float, zy: float, r: float, inn: ekf.Innovation) -> Entry:
-        freeze = math.hypot(prior.u[0], prior.u[1]) < self.config.heading_min_speed_mps and not self.paper
+        # at rest a fix says nothing about the heading; with the heading unknown the model has no heading to correct
+        slow = math.hypot(prior.u[0], prior.u[1]) < self.config.heading_min_speed_mps
+        freeze = (slow or not self._predictor.heading_known) and not self.paper
         x, y, th, p = ekf.update(prior.x, prior.y, prior.theta, prior.p, inn, r, freeze_heading=freeze)
         return Entry(prior.t, x, y, th, p, prior.u, None, (zx, zy, r, True))
 
@@ -322,6 +327,7 @@ class Estimator:
         if verdict is Verdict.RECOVERED:
             self._aligner.restart()  # carried robots may have been turned too: check the heading again
             self._heading_confirmed = False
+            self._predictor.heading_known = False
         dx, dy = self._fix_gate.seed_shift(verdict)
         p = (r, 0.0, 0.0, r, 0.0, prior.p[5])
         return Entry(prior.t, prior.x + dx, prior.y + dy, prior.theta, p, prior.u, None, (zx, zy, r, False))
@@ -330,16 +336,20 @@ class Estimator:
 
     def _maybe_realign(self) -> None:
         """Take the heading of the aligner's rotation fit when the filter's heading disagrees with it."""
-        fit = self._aligner.check(self._fix_gate.r)
+        # an unknown heading is taken from a whole window: the longer the track, the better its direction
+        fit = self._aligner.check(self._fix_gate.r, whole=not self._predictor.heading_known)
         if fit is None:
             return
         last = self._history.last
         # the filter's heading at the window's start is its current heading less the odometry turn since
-        ax, ay, ath = fit.window_odo
+        ath = fit.window_odo[2]
         filter_start = ekf.wrap_angle(last.theta - ath)
         signed = ekf.wrap_angle(fit.rotation - filter_start)
         sigma = fit.sigma
         if sigma > 0.15:
+            return
+        if not self._predictor.heading_known:
+            self._realign(fit)  # the first trustworthy window gives the heading that was unknown
             return
         if abs(signed) <= max(4.0 * math.sqrt(sigma * sigma + last.p[5]), MIN_REALIGN_RAD):
             if abs(signed) <= 3.0 * math.sqrt(sigma * sigma + last.p[5]):
@@ -355,7 +365,15 @@ class Estimator:
             if abs(ekf.wrap_angle(signed - suspect[1])) > 3.0 * math.hypot(sigma, suspect[2]):
                 self._suspect = (window, signed, sigma)  # two windows that disagree with each other: neither is proof
                 return
+        self._realign(fit)
+
+    def _realign(self, fit: RotationFit) -> None:
+        """Restart the state from the window's fit: its heading, and the position its translation puts it at."""
+        last = self._history.last
+        ax, ay, ath = fit.window_odo
+        sigma = fit.sigma
         self._suspect = None
+        self._predictor.heading_known = True
         self.counters["heading_realigned"] += 1
         c, s = math.cos(fit.rotation), math.sin(fit.rotation)
         x, y = fit.tx + ax * c - ay * s, fit.ty + ax * s + ay * c
@@ -414,7 +432,8 @@ class Estimator:
             dt = t - when
             mid = th + 0.5 * wz * dt
             c, s = math.cos(mid), math.sin(mid)
-            x, y, th = x + (vx * c - vy * s) * dt, y + (vx * s + vy * c) * dt, ekf.wrap_angle(th + wz * dt)
+            x, y = x + (vx * c - vy * s) * dt, y + (vx * s + vy * c) * dt
+            th = ekf.wrap_angle(th + wz * dt)
             when = t
         return when, x, y, th, u, last.p
 

@@ -116,13 +116,14 @@ class HeadingAligner:
             for column in (self.zxs, self.zys, self.oxs, self.oys):
                 del column[: MAX_POINTS // 2]
 
-    def check(self, r: float) -> RotationFit | None:
-        """The window's rotation fit once it has 40 % of its travel (None before, or when untrustworthy).
+    def check(self, r: float, *, whole: bool = False) -> RotationFit | None:
+        """The window's rotation fit once it has 40 % of its travel, or all of it when `whole` (None before, or when
+        untrustworthy).
 
         A window that reached its full length is closed (a new one starts), so that a heading gone wrong at any time
         (unknown at start, a robot turned while carried, slip the model did not expect) is caught within one window.
         """
-        if not self.enabled or len(self.zxs) < 6 or self.dist < 0.4 * self.window_m:
+        if not self.enabled or len(self.zxs) < 6 or self.dist < (1.0 if whole else 0.4) * self.window_m:
             return None
         fit = fit_rotation(self.oxs, self.oys, self.zxs, self.zys, 4.0 * math.sqrt(r))
         odo, window = self.odo, self.window

@@ -17,6 +17,7 @@ from robotd import ekf
 
 Twist3 = tuple[float, float, float]
 TRIM_MIN_ENTRIES = 64  # trimming is amortised: a few dozen entries are cheaper to keep than to cut one by one
+UNKNOWN_HEADING_CORRELATION_S = 1.0  # how long a velocity error from an unknown heading is taken to persist
 
 
 @dataclass(slots=True)
@@ -40,13 +41,29 @@ class Predictor:
         self.noise = noise
         self.midpoint = midpoint
         self._move = ekf.motion_step(noise, midpoint=midpoint)
+        # With the heading unknown (power-on anywhere, a robot carried off), odometry says how far the robot went but
+        # not in which direction: the state still moves along the guessed heading (right more often than not: robots
+        # tend to start facing the map's x axis), but the position's variance grows by the distance squared in every
+        # direction and keeps no correlation with the heading, so fixes steer the position freely and the gate does
+        # not defend a guess; the heading itself comes from the first whole alignment window.
+        self.heading_known = True
+
+    def _moved(self, prev: Entry, u: Twist3, dt: float) -> tuple[float, float, float, ekf.Cov]:
+        x, y, theta, p = self._move(prev.x, prev.y, prev.theta, prev.p, u[0], u[1], u[2], dt)
+        if self.heading_known:
+            return x, y, theta, p
+        # the guessed direction may be off by anything: a velocity error of up to twice the speed, correlated over
+        # UNKNOWN_HEADING_CORRELATION_S (white noise of that density: no state to carry through re-predictions)
+        q = 4.0 * (u[0] * u[0] + u[1] * u[1]) * dt * UNKNOWN_HEADING_CORRELATION_S
+        xx, xy, _, yy, _, tt = p
+        return x, y, theta, (xx + q, xy, 0.0, yy + q, 0.0, tt)
 
     def step(self, prev: Entry, t: float, u: Twist3) -> Entry:
         """The state predicted from prev to t with twist u; its `u` is u, it records no event."""
         dt = t - prev.t
         if dt <= 0.0:
             return Entry(t, prev.x, prev.y, prev.theta, prev.p, u, None, None)
-        x, y, theta, p = self._move(prev.x, prev.y, prev.theta, prev.p, u[0], u[1], u[2], dt)
+        x, y, theta, p = self._moved(prev, u, dt)
         return Entry(t, x, y, theta, p, u, None, None)
 
     def input_step(self, prev: Entry, t: float, step_u: Twist3, next_u: Twist3) -> Entry:
@@ -54,7 +71,7 @@ class Predictor:
         dt = t - prev.t
         if dt <= 0.0:
             return Entry(t, prev.x, prev.y, prev.theta, prev.p, next_u, step_u, None)
-        x, y, theta, p = self._move(prev.x, prev.y, prev.theta, prev.p, step_u[0], step_u[1], step_u[2], dt)
+        x, y, theta, p = self._moved(prev, step_u, dt)
         return Entry(t, x, y, theta, p, next_u, step_u, None)
 
 

@@ -247,7 +247,9 @@ def test_one_window_bent_by_an_echo_does_not_turn_a_confirmed_heading() -> None:
         d = 0.3 * 0.125 * k
         est.on_fix(t, x - d + d * math.cos(bend) + rng.gauss(0, 0.02), y + d * math.sin(bend) + rng.gauss(0, 0.02), t)
     x, y, th = _drive(est, 16.0, (0.3, 0.0, 0.0), start=t, true_start=(x, y, th), noise=0.02, seed=4)
-    assert est.counters["heading_realigned"] == realigned
+    # the fixes jump back when the echo ends: only a recovery of the position (which re-acquires the heading from a
+    # whole window, the robot might have been carried) may re-align, never the bent window itself
+    assert est.counters["heading_realigned"] - realigned <= est.counters["recoveries"]
     # the fused fixes of the bent window leave a few degrees, which the fixes after it wear down
     assert abs(math.remainder(est.pose().theta - th, 2 * math.pi)) < 0.1
     assert math.hypot(est.pose().x - x, est.pose().y - y) < 0.08
@@ -262,3 +264,25 @@ def test_a_robot_turned_on_the_spot_behind_the_filters_back_is_realigned_after_t
     assert est.counters["heading_realigned"] == realigned + 1
     assert abs(math.remainder(est.pose().theta - th, 2 * math.pi)) < 0.1
     assert math.hypot(est.pose().x - x, est.pose().y - y) < 0.1
+
+
+def test_with_the_heading_unknown_the_fixes_steer_the_position_until_a_window_gives_the_heading() -> None:
+    # put down facing -x (pi) while the configuration says 0: unknown (sigma pi) against wrongly known (sigma 0.1)
+    worst = {}
+    for sigma in (3.14, 0.1):
+        est = Estimator(_config(initial_sigma=(1.0, 1.0, sigma)), GEOMETRY, (0.0, 0.0), CPR)
+        x, y, th = 1.0, 2.0, math.pi
+        rng = random.Random(7)
+        errors = []
+        for k in range(1, 801):
+            t = k * 0.01
+            x -= 0.3 * 0.01
+            est.on_twist(t, 0.3, 0.0, 0.0)
+            if k % 12 == 0:
+                est.on_fix(t, x + rng.gauss(0, 0.03), y + rng.gauss(0, 0.03), t)
+            if est.pose().state is not TrackState.INITIALISING:
+                errors.append(math.hypot(est.pose(t).x - x, est.pose(t).y - y))
+        worst[sigma] = max(errors)
+        assert abs(math.remainder(est.pose().theta - th, 2 * math.pi)) < 0.1  # acquired either way
+    assert worst[3.14] < 0.15
+    assert worst[3.14] < worst[0.1] / 2  # a confident wrong heading drives the estimate away until it is re-aligned
