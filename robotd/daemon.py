@@ -24,7 +24,7 @@ import math
 import signal
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -66,7 +66,6 @@ class _Teleop:
 
     twist: Twist | None = None
     received_at: float | None = None
-    wake: asyncio.Event = field(default_factory=asyncio.Event)
 
 
 MotorsFactory = Callable[[], MotorOutputs]
@@ -180,7 +179,7 @@ class Daemon:
         self._counters["teleop_commands"] += 1
         if self._recorder is not None:
             self._recorder.write(logfile.Command(message.received_at, twist.vx, twist.vy, twist.wz))
-        teleop.wake.set()
+        self._control_step(self.clock())  # the command reaches the motors now, not at the next period
 
     # --- tasks --------------------------------------------------------------------------------------------------
 
@@ -235,22 +234,19 @@ class Daemon:
         raise _Shutdown
 
     async def _control_loop(self) -> None:
-        """Step the controller at its rate, and at once when a command arrives."""
+        """Step the controller at its rate (a command also steps it at once, from `_on_teleop`)."""
         period = self.controller.period_s
         next_tick = self.clock()
-        wake = self._teleop.wake
         while True:
-            timeout = max(0.0, next_tick - self.clock())
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(wake.wait(), timeout)
-            wake.clear()
             now = self.clock()
-            if now >= next_tick:
-                self.control_periods.tick(now)
-                next_tick += period
-                if next_tick < now:  # the loop stalled: restart the schedule rather than bursting
-                    next_tick = now + period
+            self.control_periods.tick(now)
             self._control_step(now)
+            next_tick += period
+            if next_tick < now:  # the loop stalled: restart the schedule rather than bursting
+                next_tick = now + period
+            # one sleep per period: asyncio may wake a timer up to its clock resolution early, and a loop that
+            # re-checked the time would then take a burst of tiny steps
+            await asyncio.sleep(next_tick - now)
 
     def _control_step(self, now: float) -> None:
         teleop = self._teleop

@@ -211,6 +211,8 @@ class PoseServer:
             client.wake.clear()
             while client.queue:
                 writer.write(client.queue.popleft())
+            if not writer.transport.get_write_buffer_size():
+                continue  # the socket took it all: nothing to wait for (and no timer to arm, many times a second)
             try:
                 await asyncio.wait_for(writer.drain(), self.stall_s)
             except TimeoutError:
