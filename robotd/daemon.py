@@ -17,7 +17,6 @@ command that arrived after the reconnection.
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import logging
 import math
@@ -38,6 +37,7 @@ from robotd.config import RobotdConfig
 from robotd.control import MotionController
 from robotd.estimator import Estimator
 from robotd.kinematics import Geometry, Twist
+from robotd.periodstats import PeriodStats
 from robotd.sdnotify import Notifier
 from robotd.teleop import StopCommand, TeleopMessage, open_teleop, receiver_from_config
 
@@ -69,36 +69,6 @@ class _Teleop:
 
 
 MotorsFactory = Callable[[], MotorOutputs]
-
-
-class PeriodStats:
-    """Intervals between a loop's scheduled ticks over the last `window_s`: p50, p99 and max, in milliseconds."""
-
-    def __init__(self, window_s: float = 1.0) -> None:
-        self.window_s = window_s
-        self._ticks: collections.deque[tuple[float, float]] = collections.deque()  # (tick time, interval)
-        self._previous: float | None = None
-
-    def tick(self, now: float) -> None:
-        """Note a scheduled tick at `now`."""
-        if self._previous is not None:
-            self._ticks.append((now, now - self._previous))
-        self._previous = now
-        while self._ticks and self._ticks[0][0] < now - self.window_s:
-            self._ticks.popleft()
-
-    def summary(self) -> dict[str, float | int]:
-        """{"p50_ms", "p99_ms", "max_ms", "ticks"} over the window (NaN without a tick; encoded as null)."""
-        intervals = sorted(interval for _, interval in self._ticks)
-        if not intervals:
-            return {"p50_ms": math.nan, "p99_ms": math.nan, "max_ms": math.nan, "ticks": 0}
-        last = len(intervals) - 1
-        return {
-            "p50_ms": 1e3 * intervals[round(0.50 * last)],
-            "p99_ms": 1e3 * intervals[round(0.99 * last)],
-            "max_ms": 1e3 * intervals[last],
-            "ticks": len(intervals),
-        }
 
 
 class Daemon:

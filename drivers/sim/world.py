@@ -8,8 +8,9 @@ from drivers.sim.floor import Floor, FloorParams
 from drivers.sim.ips import POSITION_CM, POSITION_MM, Hedgehog, IpsParams
 from drivers.sim.physics import MotorParams, Motors, Pose, Robot
 from drivers.sim.scenarios import Scenario, ScenarioParams
-from robotd.config import RobotdConfig, SimConfig
+from robotd.config import RobotdConfig
 from robotd.kinematics import Geometry
+from robotd.simconfig import SimConfig
 
 
 def geometry_of(config: RobotdConfig) -> Geometry:
