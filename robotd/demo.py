@@ -51,8 +51,8 @@ def _free_port(kind: int) -> int:
         return int(probe.getsockname()[1])
 
 
-def private_config(base: Path, out: Path) -> Path:
-    """A copy of `base` with free loopback ports and every path inside `out`; returns its path."""
+def private_config(base: Path, out: Path, overrides: dict[str, dict[str, Any]] | None = None) -> Path:
+    """A copy of `base` with free loopback ports, every path inside `out` and some keys of some sections changed."""
     raw: dict[str, Any] = yaml.safe_load(base.read_text(encoding="utf-8")) or {}
     raw.setdefault("pigpiod", {})["port"] = _free_port(socket.SOCK_STREAM)
     raw.setdefault("marvelmind", {})["device"] = str(out / "marvelmind")
@@ -60,6 +60,8 @@ def private_config(base: Path, out: Path) -> Path:
     teleop.update({"bind": "127.0.0.1", "port": _free_port(socket.SOCK_DGRAM)})
     raw.setdefault("pose_socket", {})["path"] = str(out / "pose.sock")
     raw.setdefault("sim", {})["record_path"] = str(out / "truth.jsonl")
+    for section, values in (overrides or {}).items():
+        raw.setdefault(section, {}).update(values)
     path = out / "config.yaml"
     path.write_text(yaml.safe_dump(raw, sort_keys=False), encoding="utf-8")
     load(path)  # the copy must be as valid as the original

@@ -12,14 +12,12 @@ import contextlib
 import math
 import os
 import signal
-import socket
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 import serial_asyncio_fast
-import yaml
 from sim_support import REPO
 
 from drivers.encoders import PigpioEncoders, WheelTicks
@@ -31,6 +29,7 @@ from drivers.sim.scenarios import Scenario, Segment
 from drivers.sim.world import geometry_of
 from robotd.config import RobotdConfig, load
 from robotd.control import MotionController
+from robotd.demo import private_config
 from robotd.kinematics import Twist
 from robotd.logfile import IpsFix, IpsLost, Truth, Wheels, read_log
 
@@ -52,26 +51,13 @@ class LiveRun:
     late_s: float = 0.0  # control steps taken later than their period, summed: the live run's timing jitter
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
-
-
 def _write_config(tmp: Path) -> Path:
-    raw = yaml.safe_load((REPO / "config" / "sim.yaml").read_text())
-    raw.setdefault("pigpiod", {})["port"] = _free_port()
-    raw.setdefault("marvelmind", {})["device"] = str(tmp / "marvelmind")
-    raw.setdefault("pose_socket", {})["path"] = str(tmp / "pose.sock")
     # The rear-right wheel is wired backwards, encoder and motor both: the daemon's signs must undo it.
-    encoders = raw.setdefault("encoders", {}).setdefault("wheels", {})
-    encoders["rear_right"] = {"a": 2, "b": 3, "sign": -1}
-    motors = raw.setdefault("motors", {}).setdefault("wheels", {})
-    motors["rear_right"] = {"enable": 19, "in1": 25, "in2": 11, "sign": -1}
-    path = tmp / "sim.yaml"
-    path.write_text(yaml.safe_dump(raw))
-    return path
+    wiring = {
+        "encoders": {"wheels": {"rear_right": {"a": 2, "b": 3, "sign": -1}}},
+        "motors": {"wheels": {"rear_right": {"enable": 19, "in1": 25, "in2": 11, "sign": -1}}},
+    }
+    return private_config(REPO / "config" / "sim.yaml", tmp, wiring)
 
 
 async def _drive(live: LiveRun) -> None:

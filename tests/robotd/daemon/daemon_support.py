@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 import pigpio
-import yaml
 
 from robotd.config import WHEELS, MotorPins, RobotdConfig, load
 from robotd.demo import Children, private_config
@@ -36,13 +35,7 @@ Overrides = dict[str, dict[str, Any]]
 
 def robot_config(out: Path, overrides: Overrides | None = None) -> Path:
     """A private copy of the simulation config in `out`, with some keys of some sections changed."""
-    path = private_config(SIM_CONFIG, out)
-    raw = yaml.safe_load(path.read_text(encoding="utf-8"))
-    for section, values in (overrides or {}).items():
-        raw.setdefault(section, {}).update(values)
-    path.write_text(yaml.safe_dump(raw, sort_keys=False), encoding="utf-8")
-    load(path)
-    return path
+    return private_config(SIM_CONFIG, out, overrides)
 
 
 def wait_until(condition: Callable[[], bool], timeout_s: float, what: str, poll_s: float = 0.01) -> float:
