@@ -14,6 +14,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from robotd.metrics import TruthTrack
+
 FloatArray = npt.NDArray[np.float64]
 
 # One colour and style per method, the same in every figure.
@@ -45,21 +47,21 @@ def _pyplot() -> Any:
     return plt
 
 
-def interpolate_truth(truth: Track, t: FloatArray) -> Track:
-    """Truth at the times `t` (linear in x, y; heading unwrapped before interpolating)."""
-    theta = np.interp(t, truth.t, np.unwrap(truth.theta)) if np.isfinite(truth.theta).all() else np.full_like(t, np.nan)
-    return Track(t, np.interp(t, truth.t, truth.x), np.interp(t, truth.t, truth.y), theta)
+def _truth_at(truth: Track, t: FloatArray) -> Track:
+    """Truth at the times `t`, interpolated as the metrics do (metrics.TruthTrack)."""
+    x, y, theta, _ = TruthTrack.from_array(np.column_stack((truth.t, truth.x, truth.y, truth.theta))).at(t)
+    return Track(t, x, y, theta)
 
 
 def position_error(track: Track, truth: Track) -> FloatArray:
     """Distance from each pose of `track` to truth at the same time (m)."""
-    ref = interpolate_truth(truth, track.t)
+    ref = _truth_at(truth, track.t)
     return np.asarray(np.hypot(track.x - ref.x, track.y - ref.y), dtype=np.float64)
 
 
 def heading_error_deg(track: Track, truth: Track) -> FloatArray:
     """Wrapped heading error in degrees (NaN where either has no heading)."""
-    ref = interpolate_truth(truth, track.t)
+    ref = _truth_at(truth, track.t)
     wrapped = np.angle(np.exp(1j * (track.theta - ref.theta)))
     return np.asarray(np.degrees(wrapped), dtype=np.float64)
 
