@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from types import ModuleType
 from typing import NamedTuple
 
 Cov = tuple[float, float, float, float, float, float]
@@ -156,8 +157,10 @@ MotionStep = Callable[[float, float, float, Cov, float, float, float, float], tu
 """(x, y, theta, P, vx, vy, wz, dt) -> (x', y', theta', P') for dt > 0: see motion_step."""
 
 
-def motion_step(noise: ControlNoise, *, midpoint: bool) -> MotionStep:
+def motion_step(noise: ControlNoise, *, midpoint: bool, lib: ModuleType = math) -> MotionStep:
     """The estimator's prediction step, with the noise's constants bound once (it runs ~200 000 times an hour).
+
+    With lib=numpy the same arithmetic runs on arrays of states and twists (many steps at once; cast the result).
 
     x', y', P' are predict_with_noise(x, y, th, P, vx, vy, dt, noise, wz) at th = theta + wz dt / 2 (the midpoint
     rule) or th = theta (the paper's Euler step), the same arithmetic; theta' = wrap_angle(theta + wz dt).
@@ -166,7 +169,7 @@ def motion_step(noise: ControlNoise, *, midpoint: bool) -> MotionStep:
     """
     lin2, lat2, slip2, turn2 = noise.lin2, noise.lat2, noise.slip2, noise.turn2
     rel2, const_v2, const_w2 = noise.rel2, noise.const_v2, noise.const_w2
-    cos, sin, hypot, pi = math.cos, math.sin, math.hypot, math.pi
+    cos, sin, hypot, pi = lib.cos, lib.sin, lib.hypot, math.pi
     plain = rel2 == 0.0 and const_v2 == 0.0 and const_w2 == 0.0 and min(lin2, lat2, slip2, turn2) >= 0.0
 
     def step(  # noqa: PLR0917 - as predict

@@ -1,12 +1,15 @@
 """robotd's pose estimator: the EKF of robotd.ekf wrapped in what a trustworthy filter needs. Pure: no I/O, no asyncio.
 
 Theory of operation
-- Inputs (wheel ticks or body twists) advance the state. Ticks are exact displacements: they are accumulated and
-  integrated at most every `predict_period_s` as one step at their mean twist. A twist is a sample held until the next.
-- Each step is kept in a short history (robotd.history: state, covariance, twist in force, and the event that
-  produced it). A fix measured at `t_meas` in the past is fused at that time: the history is rewound to the last
-  state before `t_meas`, the fix is fused there, and every later event is applied again (a late fix lands exactly
-  where an on-time one would).
+- Inputs (wheel ticks or body twists) make prediction steps on the odometry track (robotd.track). Ticks are exact
+  displacements: they are accumulated and become one step at their mean twist at most every `predict_period_s`.
+  A twist is a sample held until the next. A replay may load a whole log's wheel samples at once (`load_wheels`):
+  the same steps, made in one numpy pass, revealed as the samples are fed.
+- Fixes leave anchors on the track (robotd.history): the state at any time is the newest anchor before it carried
+  forward in O(1). A fix measured at `t_meas` in the past is fused at that time, from the state there; the anchors
+  after it are made again (a late fix lands exactly where an on-time one would, at a cost that does not depend on
+  how late it is). Between steps the state moves with the twist of the step it falls in, and beyond the newest step
+  with the twist of the ticks not yet integrated (or the twist in force).
 - Each fix gets a verdict (robotd.fixgate): the first agreeing fixes seed the position, then fixes are gated by their
   NIS (chi-square, 2 dof); rejected fixes that keep coming for `recovery_min_s` and agree with each other once the
   odometry motion is removed re-seed the position (the robot was carried, or the filter drifted). The IPS noise is
@@ -19,23 +22,34 @@ Theory of operation
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import numpy.typing as npt
 
 from robotd import ekf, kinematics
 from robotd.config import EkfConfig
+from robotd.estimates import Loaded, evaluate
 from robotd.fixgate import FixGate, TrackState, Verdict
 from robotd.heading import HeadingAligner, RotationFit
-from robotd.history import Entry, History, Predictor, Twist3, initial_entry
+from robotd.history import Anchor, FixRecord, History, Predictor, State, Twist3
+from robotd.track import OdometryTrack, StepTwists, TrackArrays
+from robotd.wheelsteps import TickKinematics, step_ends
 
 # An initial heading standard deviation above this says the heading is unknown (the robot was put down anywhere).
 HEADING_KNOWN_SIGMA_RAD = 0.5
+TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
 MIN_REALIGN_RAD = 0.35  # smaller heading errors are the EKF's own business: it corrects them from fixes in motion
 
 
-@dataclass(frozen=True, slots=True)
-class Diagnostics:
-    """One fix's record: innovation nu, its covariance S (xx, xy, yy), NIS, the gate, the verdict."""
+class Diagnostics(NamedTuple):
+    """One fix's record: innovation nu, its covariance S (xx, xy, yy), NIS, the gate, the verdict.
+
+    A NamedTuple: immutable, and built several times faster than a frozen dataclass (once per fix).
+    """
 
     t: float
     t_meas: float
@@ -84,32 +98,44 @@ class Estimator:
         self.geometry = geometry
         self.counts_per_rev = counts_per_rev
         self.paper = paper
-        self._r4 = geometry.wheel_radius_m / 4.0
-        self._r4k = geometry.wheel_radius_m / (4.0 * (geometry.lx_m + geometry.ly_m))
+        self._kinematics = TickKinematics(geometry, counts_per_rev)
         self._offset = ips_offset_m if (ekf_config.lever_arm and not paper) else (0.0, 0.0)
         self._latency = ekf_config.latency_compensation and not paper
         c = ekf_config
         if paper:  # eq. 9: a 2x2 on (v, w) mapped through G, per prediction step (see ekf.ControlNoise)
-            self._noise = ekf.ControlNoise(const_v2=c.paper_sigma_v_mps**2, const_w2=c.paper_sigma_w_rad_s**2)
+            noise = ekf.ControlNoise(const_v2=c.paper_sigma_v_mps**2, const_w2=c.paper_sigma_w_rad_s**2)
         else:
-            self._noise = ekf.ControlNoise(
+            noise = ekf.ControlNoise(
                 lin2=c.odom_along_sigma_m**2,
                 lat2=c.odom_across_sigma_m**2,
                 slip2=c.slip_heading_sigma_rad**2,
                 turn2=c.turn_heading_sigma_rad**2,
             )
-        self._predictor = Predictor(self._noise, midpoint=not paper)
+        self._noise = noise
+        self._track = OdometryTrack(noise, midpoint=not paper)
+        self._predictor = Predictor(noise, midpoint=not paper)
         self._predictor.heading_known = paper or c.initial_sigma[2] <= HEADING_KNOWN_SIGMA_RAD
-        self._history = History(
-            initial_entry(c.initial_pose, ekf.cov_diag(*c.initial_sigma)), c.history_s, keep_past=self._latency
-        )
+        x0, y0, th0 = c.initial_pose
+        first = Anchor(-math.inf, x0, y0, ekf.wrap_angle(th0), ekf.cov_diag(*c.initial_sigma), None)
+        self._history = History(self._track, self._predictor, first, c.history_s, keep_past=self._latency)
         self._last_accept_t = -math.inf
-        self._last_input_t = -math.inf
-        # wheel ticks accumulated since the last prediction
+        # wheel ticks accumulated since the last step (fed one sample at a time)
         self._tick_base: tuple[int, int, int, int] | None = None
         self._tick_base_t = -math.inf
         self._tick_last: tuple[int, int, int, int] | None = None
         self._tick_last_t = -math.inf
+        # a whole log's wheel samples, loaded at once (load_wheels): as arrays, and their times, ticks and the samples
+        # that end each step as lists (read one at a time); how many samples were fed; the outputs marked
+        self._loaded: Loaded | None = None
+        self._loaded_lists: tuple[list[float], list[int]] = ([], [])  # times, step ends
+        self._fed = 0
+        self._spans: list[
+            tuple[npt.NDArray[np.int64], Anchor, bool]
+        ] = []  # mark_samples: samples, anchor, heading known
+        self._ready: list[tuple[float, float, float, float, ekf.Cov]] = []  # outputs computed when marked
+        self._arrays: TrackArrays | None = None
+        # the state at the newest step: (newest anchor, visible steps, state, whether the state is at that step)
+        self._newest: tuple[Anchor, int, State, bool] | None = None
         self._aligner = HeadingAligner(c.heading_align_m, self._offset, enabled=c.heading_align_m > 0.0 and not paper)
         # Whether a window's fit has agreed with the filter's heading since start-up (or since the robot was carried):
         # until then the heading is unknown and one disagreeing window re-aligns it; after it, a window that
@@ -145,6 +171,8 @@ class Estimator:
 
     def on_wheels(self, t: float, ticks: tuple[int, int, int, int]) -> None:
         """Cumulative encoder counts (FL FR RL RR) at time t."""
+        if self._loaded is not None:
+            raise RuntimeError("wheel samples were loaded with load_wheels: feed them with on_wheel_samples")
         if not math.isfinite(t) or t <= self._tick_last_t:
             self.counters["dropped_out_of_order" if math.isfinite(t) else "dropped_non_finite"] += 1
             return
@@ -152,94 +180,157 @@ class Estimator:
         if self._tick_base is None:
             self._tick_base, self._tick_base_t = ticks, t
             self._tick_last, self._tick_last_t = ticks, t
-            self._input_step(t, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+            self._step_to(t, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
             return
         self._tick_last, self._tick_last_t = ticks, t
         if t - self._tick_base_t >= self.config.predict_period_s:
             self._flush_ticks()
 
+    def load_wheels(self, times: npt.NDArray[np.float64], ticks: npt.NDArray[np.int64]) -> bool:
+        """Take a whole log's wheel samples at once (times strictly increasing and finite, ticks n x 4), to be fed
+        in order with on_wheel_samples; the steps are those of feeding them one by one. False (nothing taken) when
+        inputs were already given or the times are not clean. Twist samples cannot be mixed in afterwards."""
+        if self._loaded is not None or self._tick_base is not None or len(self._track) or len(times) < 2:
+            return False
+        if not (np.all(np.isfinite(times)) and np.all(np.diff(times) > 0.0)):
+            return False
+        times_list: list[float] = times.tolist()
+        ends = step_ends(times_list, self.config.predict_period_s)
+        end, begin = np.array(ends[1:], dtype=np.int64), np.array(ends[:-1], dtype=np.int64)
+        vx, vy, wz = self._kinematics.twists(ticks[end] - ticks[begin], times[end] - times[begin])
+        self._track.start(times_list[0], (0.0, 0.0, 0.0))
+        self._track.extend(StepTwists(times[end], vx, vy, wz, (vx, vy, wz)))
+        if self._history.start == -math.inf:
+            self._set_clock(times_list[0])
+        self._history.visible = 0
+        self._loaded = Loaded(times, ticks, np.array(ends, dtype=np.int64))
+        self._loaded_lists = (times_list, ends)
+        return True
+
     def on_wheel_samples(
         self, times: list[float], ticks: list[tuple[int, int, int, int]], start: int, stop: int
     ) -> None:
-        """on_wheels(times[i], ticks[i]) for i in range(start, stop), in one call: the same result, faster.
+        """on_wheels(times[i], ticks[i]) for i in range(start, stop), in one call: the same result.
 
-        Most samples only move the newest tick reading; this loop keeps that reading in local variables and does
-        the full work only for the samples that end a prediction step (or that on_wheels would drop).
+        After load_wheels, the samples are those loaded, fed in order: their steps are revealed, nothing computed.
         """
-        if self._tick_base is None:  # the first sample starts the tick clock: the general path
-            while start < stop and self._tick_base is None:
-                self.on_wheels(times[start], ticks[start])
-                start += 1
-        last_t, base_t = self._tick_last_t, self._tick_base_t
-        period = self.config.predict_period_s
-        newest = -1  # the newest sample taken but not yet stored in self._tick_last
-        taken = 0
-        for i in range(start, stop):
-            t = times[i]
-            if last_t < t < math.inf:
-                taken += 1
-                last_t = t
-                newest = i
-                if t - base_t >= period:
-                    self._tick_last, self._tick_last_t = ticks[i], t
-                    self._flush_ticks()
-                    base_t = t
-                    newest = -1
-                continue
-            if newest >= 0:
-                self._tick_last, self._tick_last_t = ticks[newest], last_t
-                newest = -1
-            self.on_wheels(t, ticks[i])  # dropped: counted there
-        if newest >= 0:
-            self._tick_last, self._tick_last_t = ticks[newest], last_t
-        self.counters["wheels"] += taken
+        if self._loaded is None:
+            for i in range(start, stop):
+                self.on_wheels(times[i], ticks[i])
+            return
+        if start != self._fed:
+            raise ValueError(f"loaded wheel samples must be fed in order: expected {self._fed}, got {start}")
+        self._fed = stop
+        self.counters["wheels"] += stop - start
+        self._history.visible = bisect.bisect_left(self._loaded_lists[1], stop)
 
     def on_twist(self, t: float, vx: float, vy: float, wz: float) -> None:
         """A measured body twist (m/s, rad/s) at time t, held until the next one."""
+        if self._loaded is not None:
+            raise RuntimeError("wheel samples were loaded with load_wheels: no twist samples can be added")
         if not (math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(wz)):
             self.counters["dropped_non_finite"] += 1
             return
-        if t < self._history.last.t:
+        if t < self._history.newest_step_t():
             self.counters["dropped_out_of_order"] += 1
             return
         self.counters["twists"] += 1
-        self._input_step(t, self._history.last.u, (vx, vy, wz))
+        track = self._track
+        held = (track.hx[-1], track.hy[-1], track.hw[-1]) if len(track) else (0.0, 0.0, 0.0)
+        self._step_to(t, held, (vx, vy, wz))
 
     def on_fix_lost(self, t: float) -> None:  # noqa: ARG002 - the daemon's interface carries the time
         """A position packet flagged "coordinates unavailable": never fused, only counted."""
         self.counters["fixes_lost"] += 1
 
     def _flush_ticks(self) -> None:
-        """Integrate the ticks accumulated since the last prediction as one step at their mean twist."""
-        base, last = self._tick_base, self._tick_last
-        assert base is not None
-        assert last is not None
-        dt = self._tick_last_t - self._tick_base_t
-        if dt <= 0.0:
+        """Integrate the ticks accumulated since the last step as one step at their mean twist."""
+        u = self._tick_twist()
+        if u is None:
             return
-        k = 2.0 * math.pi / self.counts_per_rev / dt
-        w1, w2, w3, w4 = (
-            (last[0] - base[0]) * k,
-            (last[1] - base[1]) * k,
-            (last[2] - base[2]) * k,
-            (last[3] - base[3]) * k,
-        )
-        # kinematics.forward (eq. 1), inlined: this runs for every prediction step
-        u = (self._r4 * (w1 + w2 + w3 + w4), self._r4 * (-w1 + w2 + w3 - w4), self._r4k * (-w1 + w2 - w3 + w4))
-        self._tick_base, self._tick_base_t = last, self._tick_last_t
-        self._input_step(self._tick_last_t, u, u)
+        self._tick_base, self._tick_base_t = self._tick_last, self._tick_last_t
+        self._step_to(self._tick_last_t, u, u)
 
-    def _input_step(self, t: float, step_u: Twist3, next_u: Twist3) -> None:
-        last = self._history.last
-        if last.t == -math.inf:  # the first input only sets the clock
-            self._history.set_last_time(t)
-            last.u = next_u
-            self._last_input_t = t
-            return
-        t = max(t, last.t)  # a fix may have carried the state past this input's time
-        self._aligner.track(step_u, t - last.t, t)
-        self._history.append(self._predictor.input_step(last, t, step_u, next_u))
-        self._last_input_t = t
+    def _tick_twist(self) -> Twist3 | None:
+        """The mean twist of the ticks accumulated since the last step (None when there are none)."""
+        base, last = self._tick_base, self._tick_last
+        if base is None or last is None or self._tick_last_t <= self._tick_base_t:
+            return None
+        return self._kinematics.twist(base, last, self._tick_last_t - self._tick_base_t)
+
+    def _set_clock(self, t: float) -> None:
+        """The first input or fix sets the clock: the initial state is at t."""
+        first = self._history.anchors[0]
+        self._history.reset(Anchor(t, first.x, first.y, first.theta, first.p, None))
+
+    def _step_to(self, t: float, step_u: Twist3, held: Twist3) -> None:
+        """A step ending at t with twist step_u, then `held` in force (the first input starts the track)."""
+        track, history = self._track, self._history
+        if not len(track):
+            start = min(t, history.start) if history.start > -math.inf else t
+            track.start(start, held if start == t else (0.0, 0.0, 0.0))
+            if history.start == -math.inf:
+                self._set_clock(start)
+            if start < t:
+                track.append(t, (0.0, 0.0, 0.0), held)
+        elif t > track.t[-1]:
+            track.append(t, step_u, held)
+        else:
+            track.hold(held)
+        history.visible = len(track)
+        if len(track) - TRIM_STEPS > 2 * TRIM_STEPS:
+            needed = history.trim(t, self._pending)
+            if needed > TRIM_STEPS:
+                track.drop_before(track.first + needed)
+                history.visible = len(track)
+                self._newest = None  # its step index moved
+
+    def _pending(self) -> Twist3:
+        """The twist beyond the newest step: that of the samples fed since (their mean), or the one in force."""
+        track, vis = self._track, self._history.visible
+        if self._loaded is not None:
+            times, ends = self._loaded_lists
+            last = self._fed - 1
+            if vis and last > ends[vis - 1]:
+                e = ends[vis - 1]
+                ticks = self._loaded.ticks
+                start, end = ticks[e].tolist(), ticks[last].tolist()
+                return self._kinematics.twist(
+                    (start[0], start[1], start[2], start[3]), (end[0], end[1], end[2], end[3]), times[last] - times[e]
+                )
+        else:
+            u = self._tick_twist()
+            if u is not None:
+                return u
+        if not vis:
+            return (0.0, 0.0, 0.0)
+        return track.hx[vis - 1], track.hy[vis - 1], track.hw[vis - 1]
+
+    def _twist_at(self, t: float) -> Twist3:
+        """The twist in force at t: that of the visible step containing t, or the pending one beyond them."""
+        track, vis = self._track, self._history.visible
+        i = bisect.bisect_left(track.t, t, 0, vis)
+        if i < vis and i > 0:
+            return track.vx[i], track.vy[i], track.wz[i]
+        if i == 0 and vis:
+            return track.hx[0], track.hy[0], track.hw[0]
+        return self._pending()
+
+    def _odometry_at(self, t: float) -> tuple[float, float, float] | None:
+        """The odometry-only pose at t (linear between visible steps, the newest beyond); None before them."""
+        track, vis = self._track, self._history.visible
+        if not vis or t < track.t[0]:
+            return None
+        i = bisect.bisect_right(track.t, t, 0, vis)
+        if i >= vis:
+            return track.ox[vis - 1], track.oy[vis - 1], track.oth[vis - 1]
+        t0, t1 = track.t[i - 1], track.t[i]
+        f = (t - t0) / (t1 - t0)
+        return (
+            track.ox[i - 1] + f * (track.ox[i] - track.ox[i - 1]),
+            track.oy[i - 1] + f * (track.oy[i] - track.oy[i - 1]),
+            track.oth[i - 1] + f * (track.oth[i] - track.oth[i - 1]),
+        )
 
     # --- fixes ------------------------------------------------------------------------------------
 
@@ -249,101 +340,117 @@ class Estimator:
         if not (math.isfinite(t) and math.isfinite(x) and math.isfinite(y)):
             self.counters["dropped_non_finite"] += 1
             return None
-        if self._tick_base is not None and self._tick_last_t > self._tick_base_t:
-            self._flush_ticks()  # the state must reach the newest input before a fix is placed in time
         if not self._latency or not math.isfinite(t_meas):
             t_meas = t
         t_meas = min(t_meas, t)
         history = self._history
-        if history.last.t == -math.inf:
-            history.set_last_time(t_meas)
-        if t_meas < history.start:
+        if history.start == -math.inf:
+            self._set_clock(t_meas)
+        newest_step = history.newest_step_t()
+        gate = self._fix_gate
+        if t_meas < history.start or (self._latency and t_meas < newest_step - self.config.history_s):
             self.counters["fixes_too_old"] += 1
+            nan = math.nan
             return Diagnostics(
-                t,
-                t_meas,
-                (math.nan, math.nan),
-                (math.nan,) * 3,
-                math.nan,
-                self._fix_gate.gate,
-                Verdict.TOO_OLD,
-                math.sqrt(self._fix_gate.r),
+                t, t_meas, (nan, nan), (nan, nan, nan), nan, gate.gate, Verdict.TOO_OLD, math.sqrt(gate.r)
             )
         k = history.index_at(t_meas)
-        if k < len(history.entries) - 1:
+        if t_meas < newest_step or k < len(history.anchors) - 1:
             self.counters["late_fixes"] += 1
-        base = history.entries[k]
-        prior = self._predictor.step(base, t_meas, base.u) if t_meas > base.t else base
+        prior = history.state_at(history.anchors[k], t_meas, self._pending)
+        px, py, pth, pp = prior
         ox, oy = self._offset
-        gate = self._fix_gate
         r = gate.r
-        inn = ekf.innovation(prior.x, prior.y, prior.theta, prior.p, x, y, r, ox, oy)
+        inn = ekf.innovation(px, py, pth, pp, x, y, r, ox, oy)
         verdict = gate.judge(t_meas, inn, r)
-        if gate.seeded:
-            self._aligner.record(x, y, t_meas)
+        aligner = self._aligner
+        if gate.seeded and aligner.enabled:
+            if math.isinf(aligner.start_t):
+                self._restart_window()  # the first window starts with the first seeded fix
+            aligner.record(x, y, t_meas, self._odometry_at(t_meas))
         if verdict is Verdict.ACCEPTED:
-            fused = self._fuse(prior, x, y, r, inn)
+            anchor = self._fuse(prior, t_meas, (x, y, r), inn)
         elif verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
-            fused = self._seed(prior, x, y, r, verdict)
+            anchor = self._seed(prior, t_meas, (x, y, r), verdict)
         else:
-            fused = Entry(t_meas, prior.x, prior.y, prior.theta, prior.p, prior.u, None, (x, y, r, False))
-        history.rewrite(k, fused, self._replay_event)  # every later event again, from the corrected state
+            anchor = Anchor(t_meas, px, py, pth, pp, FixRecord(x, y, r, fused=False))
+        history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
         if verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED or verdict is Verdict.ACCEPTED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
-        self._maybe_realign()
+        if (
+            aligner.enabled
+            and self._history.visible
+            and self._track.dist[self._history.visible - 1] >= aligner.next_fit
+        ):
+            self._maybe_realign()
         return Diagnostics(
-            t,
-            t_meas,
-            (inn.nu_x, inn.nu_y),
-            (inn.s_xx, inn.s_xy, inn.s_yy),
-            inn.nis,
-            self._fix_gate.gate,
-            verdict,
-            math.sqrt(r),
+            t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)
         )
 
-    def _replay_event(self, prev: Entry, event: Entry) -> Entry:
-        if event.fix is not None:
-            zx, zy, r, was_fused = event.fix
-            moved = self._predictor.step(prev, event.t, prev.u)
-            moved.u = prev.u
-            if not was_fused:
-                moved.fix = event.fix
-                return moved
-            inn = ekf.innovation(moved.x, moved.y, moved.theta, moved.p, zx, zy, r, *self._offset)
-            return self._fuse(moved, zx, zy, r, inn)
-        assert event.step_u is not None
-        return self._predictor.input_step(prev, event.t, event.step_u, event.u)
+    def _remake(self, state: State, old: Anchor) -> Anchor:
+        """An anchor made again at its time from the state there: its fix fused again, its seed moved again."""
+        fix = old.fix
+        x, y, th, p = state
+        if fix is None:
+            return Anchor(old.t, x, y, th, p, None)
+        if fix.fused:
+            inn = ekf.innovation(x, y, th, p, fix.zx, fix.zy, fix.r, *self._offset)
+            return self._fuse(state, old.t, (fix.zx, fix.zy, fix.r), inn)
+        if fix.seed is not None:
+            r = fix.r
+            return Anchor(old.t, x + fix.seed[0], y + fix.seed[1], th, (r, 0.0, 0.0, r, 0.0, p[5]), fix)
+        return Anchor(old.t, x, y, th, p, fix)
 
-    def _fuse(self, prior: Entry, zx: float, zy: float, r: float, inn: ekf.Innovation) -> Entry:
+    def _fuse(self, prior: State, t: float, z: tuple[float, float, float], inn: ekf.Innovation) -> Anchor:
+        """The anchor of fix z = (zx, zy, r) fused at t into the prior."""
         # at rest a fix says nothing about the heading; with the heading unknown the model has no heading to correct
-        slow = math.hypot(prior.u[0], prior.u[1]) < self.config.heading_min_speed_mps
-        freeze = (slow or not self._predictor.heading_known) and not self.paper
-        x, y, th, p = ekf.update(prior.x, prior.y, prior.theta, prior.p, inn, r, freeze_heading=freeze)
-        return Entry(prior.t, x, y, th, p, prior.u, None, (zx, zy, r, True))
+        if self.paper:
+            freeze = False
+        elif not self._predictor.heading_known:
+            freeze = True
+        else:
+            u = self._twist_at(t)
+            freeze = math.hypot(u[0], u[1]) < self.config.heading_min_speed_mps
+        x, y, th, p = ekf.update(prior[0], prior[1], prior[2], prior[3], inn, z[2], freeze_heading=freeze)
+        return Anchor(t, x, y, th, p, FixRecord(z[0], z[1], z[2], fused=True))
 
-    def _seed(self, prior: Entry, zx: float, zy: float, r: float, verdict: Verdict) -> Entry:
+    def _seed(self, prior: State, t: float, z: tuple[float, float, float], verdict: Verdict) -> Anchor:
         """Move the beacon onto the agreeing fixes (their median innovation), forgetting the position's past."""
         if verdict is Verdict.RECOVERED:
-            self._aligner.restart()  # carried robots may have been turned too: check the heading again
+            self._restart_window()  # carried robots may have been turned too: check the heading again
             self._heading_confirmed = False
             self._predictor.heading_known = False
         dx, dy = self._fix_gate.seed_shift(verdict)
-        p = (r, 0.0, 0.0, r, 0.0, prior.p[5])
-        return Entry(prior.t, prior.x + dx, prior.y + dy, prior.theta, p, prior.u, None, (zx, zy, r, False))
+        zx, zy, r = z
+        p = (r, 0.0, 0.0, r, 0.0, prior[3][5])
+        return Anchor(t, prior[0] + dx, prior[1] + dy, prior[2], p, FixRecord(zx, zy, r, fused=False, seed=(dx, dy)))
 
     # --- heading alignment --------------------------------------------------------------------------
 
+    def _newest_odometry(self) -> tuple[float, tuple[float, float, float], float]:
+        """Time, odometry pose and distance travelled at the newest visible step."""
+        track, vis = self._track, self._history.visible
+        if not vis:
+            return self._history.start, (0.0, 0.0, 0.0), 0.0
+        k = vis - 1
+        return track.t[k], (track.ox[k], track.oy[k], track.oth[k]), track.dist[k]
+
+    def _restart_window(self) -> None:
+        t, pose, dist = self._newest_odometry()
+        self._aligner.restart(t, pose, dist)
+
     def _maybe_realign(self) -> None:
         """Take the heading of the aligner's rotation fit when the filter's heading disagrees with it."""
+        aligner = self._aligner
+        now_t, now_pose, dist = self._newest_odometry()
         # an unknown heading is taken from a whole window: the longer the track, the better its direction
-        fit = self._aligner.check(self._fix_gate.r, whole=not self._predictor.heading_known)
+        fit = aligner.check(self._fix_gate.r, now_t, now_pose, dist, whole=not self._predictor.heading_known)
         if fit is None:
             return
-        last = self._history.last
+        _, _, theta, p = self._state_at_newest_step()
         # the filter's heading at the window's start is its current heading less the odometry turn since
         ath = fit.window_odo[2]
-        filter_start = ekf.wrap_angle(last.theta - ath)
+        filter_start = ekf.wrap_angle(theta - ath)
         signed = ekf.wrap_angle(fit.rotation - filter_start)
         sigma = fit.sigma
         if sigma > 0.15:
@@ -351,8 +458,8 @@ class Estimator:
         if not self._predictor.heading_known:
             self._realign(fit)  # the first trustworthy window gives the heading that was unknown
             return
-        if abs(signed) <= max(4.0 * math.sqrt(sigma * sigma + last.p[5]), MIN_REALIGN_RAD):
-            if abs(signed) <= 3.0 * math.sqrt(sigma * sigma + last.p[5]):
+        if abs(signed) <= max(4.0 * math.sqrt(sigma * sigma + p[5]), MIN_REALIGN_RAD):
+            if abs(signed) <= 3.0 * math.sqrt(sigma * sigma + p[5]):
                 self._heading_confirmed = True
                 self._suspect = None
             return
@@ -369,7 +476,6 @@ class Estimator:
 
     def _realign(self, fit: RotationFit) -> None:
         """Restart the state from the window's fit: its heading, and the position its translation puts it at."""
-        last = self._history.last
         ax, ay, ath = fit.window_odo
         sigma = fit.sigma
         self._suspect = None
@@ -378,15 +484,36 @@ class Estimator:
         c, s = math.cos(fit.rotation), math.sin(fit.rotation)
         x, y = fit.tx + ax * c - ay * s, fit.ty + ax * s + ay * c
         r = self._fix_gate.r
-        entry = Entry(
-            last.t, x, y, ekf.wrap_angle(fit.rotation + ath), (r, 0.0, 0.0, r, 0.0, sigma * sigma), last.u, None, None
-        )
-        # the history before now was built on the wrong heading: start it again from here
-        self._history.reset(entry)
+        when = self._history.newest_step_t()
+        anchor = Anchor(when, x, y, ekf.wrap_angle(fit.rotation + ath), (r, 0.0, 0.0, r, 0.0, sigma * sigma), None)
+        # the states before now were built on the wrong heading: start again from here
+        self._history.reset(anchor)
         self._fix_gate.forget()
-        self._aligner.restart()
+        self._restart_window()
 
     # --- output ---------------------------------------------------------------------------------------
+
+    def _state_at_newest_step(self) -> State:
+        """The state at the newest visible step, or at the newest anchor when that is later."""
+        history = self._history
+        anchor, vis = history.newest, history.visible
+        cached = self._newest
+        if cached is not None and cached[0] is anchor:
+            if cached[1] == vis:
+                return cached[2]
+            if cached[3] and cached[1] < vis <= cached[1] + 2:
+                # the outputs between two fixes: one or two steps on from the last output, taken one by one
+                track, move = self._track, self._predictor.move
+                state = cached[2]
+                for k in range(cached[1], vis):
+                    state = move(state, (track.vx[k], track.vy[k], track.wz[k]), track.t[k] - track.t[k - 1])
+                self._newest = (anchor, vis, state, True)
+                return state
+        when = history.newest_step_t()
+        on_step = when > anchor.t
+        state = history.state_at(anchor, when, self._pending) if on_step else anchor.state
+        self._newest = (anchor, vis, state, on_step)
+        return state
 
     def pose(self, t: float | None = None) -> PoseEstimate:
         """The estimate, extrapolated with the twist in force to time t when t is later than the newest input."""
@@ -402,31 +529,50 @@ class Estimator:
         """
         if self._fix_gate.state is TrackState.INITIALISING:
             return None
-        last = self._history.entries[-1]
-        if t > last.t > -math.inf:  # carried forward: the arithmetic of _extrapolate
-            _, x, y, th, _, p = self._extrapolate(t)
-            return x, y, th, p
-        return last.x, last.y, last.theta, last.p
+        _, x, y, th, _, p = self._extrapolate(t)
+        return x, y, th, p
+
+    def mark(self, t: float) -> None:
+        """Take an output at t (that of position(t)), to be read with marked(); none before a fix placed the filter."""
+        if self._loaded is not None:
+            raise RuntimeError("after load_wheels outputs are marked at wheel samples: mark_samples")
+        if self._fix_gate.state is TrackState.INITIALISING:
+            return
+        _, x, y, th, _, p = self._extrapolate(t)
+        self._ready.append((t, x, y, th, p))
+
+    def mark_samples(self, samples: npt.NDArray[np.int64]) -> None:
+        """Take outputs at loaded wheel samples (indices, all fed already, none before an earlier mark, no fix since
+        they were fed): each that of position(times[i]) right after sample i was fed. Computed by marked()."""
+        if self._loaded is None:
+            raise RuntimeError("mark_samples needs wheel samples loaded with load_wheels")
+        if self._fix_gate.state is TrackState.INITIALISING or not len(samples):
+            return
+        self._spans.append((samples, self._history.newest, self._predictor.heading_known))
+
+    def marked(self) -> tuple[list[float], list[float], list[float], list[float], npt.NDArray[np.float64]]:
+        """The outputs marked so far, in order: times, x, y, theta, and P's upper triangles (n x 6)."""
+        if self._loaded is None:
+            if not self._ready:
+                return [], [], [], [], np.zeros((0, 6))
+            t, x, y, th, p = zip(*self._ready, strict=True)
+            return list(t), list(x), list(y), list(th), np.array(p, dtype=np.float64)
+        if self._arrays is None:
+            self._arrays = self._track.arrays()
+        t_out, xs, ys, ths, ps = evaluate(
+            self._spans, self._arrays, self._loaded, self._kinematics, self._noise, midpoint=not self.paper
+        )
+        return t_out.tolist(), xs.tolist(), ys.tolist(), ths.tolist(), np.column_stack(ps)
 
     def _extrapolate(self, t: float | None) -> tuple[float, float, float, float, Twist3, ekf.Cov]:
-        """Time, pose, twist in force and P of the newest state carried forward to t (see pose)."""
-        last = self._history.last
-        x, y, th = last.x, last.y, last.theta
-        when = last.t
-        u = last.u
-        base, ticks = self._tick_base, self._tick_last
-        if base is not None and ticks is not None and self._tick_last_t > self._tick_base_t:
-            # ticks not yet integrated: their mean twist, without committing a prediction step
-            k = 2.0 * math.pi / self.counts_per_rev / (self._tick_last_t - self._tick_base_t)
-            w1, w2, w3, w4 = (
-                (ticks[0] - base[0]) * k,
-                (ticks[1] - base[1]) * k,
-                (ticks[2] - base[2]) * k,
-                (ticks[3] - base[3]) * k,
-            )
-            u = (self._r4 * (w1 + w2 + w3 + w4), self._r4 * (-w1 + w2 + w3 - w4), self._r4k * (-w1 + w2 - w3 + w4))
+        """Time, pose, twist in force and P of the newest state carried forward to t (mean only) when t is later."""
+        history = self._history
+        when = max(history.newest_step_t(), history.newest.t)
+        x, y, th, p = self._state_at_newest_step()
+        u = self._pending()
         if t is None:
-            t = max(when, self._tick_last_t)
+            fed_t = self._loaded_lists[0][self._fed - 1] if self._fed else when
+            t = max(when, self._tick_last_t, fed_t)
         if t > when and math.isfinite(when):
             vx, vy, wz = u
             dt = t - when
@@ -435,7 +581,7 @@ class Estimator:
             x, y = x + (vx * c - vy * s) * dt, y + (vx * s + vy * c) * dt
             th = ekf.wrap_angle(th + wz * dt)
             when = t
-        return when, x, y, th, u, last.p
+        return when, x, y, th, u, p
 
 
 __all__ = ["Diagnostics", "Estimator", "PoseEstimate", "TrackState", "Verdict"]

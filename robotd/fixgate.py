@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import bisect
 import enum
 import math
 from collections import deque
@@ -62,6 +63,7 @@ class FixGate:
         self.rejected: deque[Innovation3] = deque(maxlen=256)
         self.candidates: deque[Innovation3] = deque(maxlen=SEED_FIXES)
         self.innovations: deque[float] = deque(maxlen=31)  # |nu|^2 - (trace(S) - 2 r), for the noise estimate
+        self._ordered: list[float] = []  # the same, sorted
 
     def judge(self, t_meas: float, inn: ekf.Innovation, r: float) -> Verdict:
         """Seed, accept, gate or recover: the fix's verdict (and the counters and noise estimate that follow)."""
@@ -110,6 +112,7 @@ class FixGate:
         """Drop the rejected fixes and the innovations: what they were measured against is gone."""
         self.rejected.clear()
         self.innovations.clear()
+        self._ordered.clear()
 
     def _agree(self, innovations: list[Innovation3]) -> bool:
         """Whether fixes (as innovations, odometry motion removed) all lie close to their median."""
@@ -132,9 +135,14 @@ class FixGate:
     def _learn_noise(self, inn: ekf.Innovation, r: float) -> None:
         """Track the IPS noise variance as the median innovation, less what the prediction accounts for."""
         predicted = 0.5 * (inn.s_xx + inn.s_yy) - r  # H P H^T per axis
-        self.innovations.append((inn.nu_x * inn.nu_x + inn.nu_y * inn.nu_y) / LN4 - predicted)
-        if len(self.innovations) >= 5:
-            estimate = sorted(self.innovations)[len(self.innovations) // 2]
+        value = (inn.nu_x * inn.nu_x + inn.nu_y * inn.nu_y) / LN4 - predicted
+        window, ordered = self.innovations, self._ordered
+        if len(window) == window.maxlen:
+            del ordered[bisect.bisect_left(ordered, window[0])]
+        window.append(value)
+        bisect.insort(ordered, value)  # the window kept sorted too: its median without sorting it at every fix
+        if len(ordered) >= 5:
+            estimate = ordered[len(ordered) // 2]
             self.r = min(max(estimate, self.r_floor), self.config.ips_sigma_max_m**2)
 
 

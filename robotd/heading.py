@@ -9,12 +9,11 @@ with its own heading and takes it when they disagree. Pure: no I/O.
 from __future__ import annotations
 
 import math
-from collections import deque
 from typing import NamedTuple
 
 LN4 = 2.0 * math.log(2.0)  # median of a chi-square with 2 dof: |nu|^2 / sigma^2 has this median
 MAX_POINTS = 400  # a robot standing still must not grow a window forever
-TRAIL_S = 5.0  # how far back odometry poses are kept to pair a late fix with where the robot was when measured
+FIT_SPACING = 0.25  # of the window's travel between two fits (at 40, 65, 90 and 100 %)
 
 
 class RotationFit(NamedTuple):
@@ -32,10 +31,11 @@ class RotationFit(NamedTuple):
 
 
 class HeadingAligner:
-    """The current window's odometry track and fixes; fits their rotation once enough travel was seen.
+    """The current window's fixes and the odometry-only beacon positions paired with them; fits their rotation once
+    enough travel was seen.
 
-    The window's fixes (zx, zy) and the odometry-only beacon positions (ox, oy) paired with them are kept as four
-    columns, in the order the fit reads them.
+    Odometry poses come from the estimator's odometry track (robotd.track), in its frame; the window keeps its start
+    pose and turns them into the window's frame. The pairs are kept as four columns, in the order the fit reads them.
     """
 
     def __init__(self, window_m: float, offset: tuple[float, float], *, enabled: bool) -> None:
@@ -46,66 +46,35 @@ class HeadingAligner:
         self.zys: list[float] = []
         self.oxs: list[float] = []
         self.oys: list[float] = []
-        self.odo = (0.0, 0.0, 0.0)  # odometry-only pose since the window started
-        self.dist = 0.0
-        self.last_window_odo = (0.0, 0.0, 0.0)
-        self.t = -math.inf  # time of self.odo
-        # (t, x, y, theta) of the odometry-only pose in this window, newest last: fixes are paired by their
-        # measurement time, so a late fix meets the pose the robot had when the beacon was measured
-        self.trail: deque[tuple[float, float, float, float]] = deque()
+        self.start_t = math.inf  # the window's start: time, odometry pose and distance travelled then
+        self.start_pose = (0.0, 0.0, 0.0)
+        self.start_dist = 0.0
+        self.last_fit_dist = -math.inf  # travel (in the window) at the last fit: fits are spaced FIT_SPACING apart
+        self.next_fit = math.inf  # no fit is due before this distance travelled (since start-up): check() may skip
         self.window = 0  # how many windows were started: tells the fits of successive windows apart
 
-    def restart(self) -> None:
-        """Start a new window here (after a full window, a recovery or a re-alignment)."""
+    def restart(self, t: float, pose: tuple[float, float, float], dist: float) -> None:
+        """Start a new window at time t, where the odometry pose was `pose` after `dist` of travel."""
         if self.enabled:
-            self.last_window_odo = self.odo
             self.zxs, self.zys, self.oxs, self.oys = [], [], [], []
-            self.odo = (0.0, 0.0, 0.0)
-            self.dist = 0.0
-            self.trail.clear()
+            self.start_t, self.start_pose, self.start_dist = t, pose, dist
+            self.last_fit_dist = -math.inf
+            self.next_fit = dist + 0.4 * self.window_m
             self.window += 1
 
-    def track(self, u: tuple[float, float, float], dt: float, t: float) -> None:
-        """Integrate the odometry-only pose over one input step of twist u (midpoint heading) that ends at t."""
-        if not self.enabled or dt <= 0.0:
-            return
-        vx, vy, wz = u
-        ax, ay, ath = self.odo
-        trail = self.trail
-        if not trail:
-            trail.append((t - dt, ax, ay, ath))
-        th = ath + 0.5 * wz * dt
-        c, s = math.cos(th), math.sin(th)
-        self.odo = (ax + (vx * c - vy * s) * dt, ay + (vx * s + vy * c) * dt, ath + wz * dt)
-        self.t = t
-        trail.append((t, *self.odo))
-        while len(trail) > 2 and trail[1][0] < t - TRAIL_S:
-            trail.popleft()
-        self.dist += math.hypot(vx, vy) * dt
+    def in_window(self, pose: tuple[float, float, float]) -> tuple[float, float, float]:
+        """An odometry pose in the window's frame (relative to its start)."""
+        sx, sy, sth = self.start_pose
+        c, s = math.cos(sth), math.sin(sth)
+        dx, dy = pose[0] - sx, pose[1] - sy
+        return c * dx + s * dy, c * dy - s * dx, pose[2] - sth
 
-    def _odo_at(self, t: float) -> tuple[float, float, float] | None:
-        """The odometry-only pose at time t (linear between tracked steps); None before the trail begins."""
-        trail = self.trail
-        if not trail or t >= trail[-1][0]:
-            return self.odo
-        if t < trail[0][0]:
-            return None
-        for k in range(len(trail) - 1, 0, -1):  # late fixes are recent: search from the newest end
-            t0, x0, y0, th0 = trail[k - 1]
-            if t0 <= t:
-                t1, x1, y1, th1 = trail[k]
-                f = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
-                return x0 + f * (x1 - x0), y0 + f * (y1 - y0), th0 + f * (th1 - th0)
-        return None
-
-    def record(self, zx: float, zy: float, t_meas: float) -> None:
-        """Pair a fix measured at t_meas with the odometry-only beacon position then (skipped if before the window)."""
-        if not self.enabled:
+    def record(self, zx: float, zy: float, t_meas: float, pose: tuple[float, float, float] | None) -> None:
+        """Pair a fix measured at t_meas with the odometry-only beacon position then (`pose`: the odometry pose at
+        t_meas, None when unknown); skipped if measured before the window began."""
+        if not self.enabled or pose is None or t_meas < self.start_t:
             return
-        odo = self._odo_at(t_meas)
-        if odo is None:
-            return
-        ax, ay, ath = odo
+        ax, ay, ath = self.in_window(pose)
         ox, oy = self.offset
         c, s = math.cos(ath), math.sin(ath)
         self.zxs.append(zx)
@@ -116,19 +85,30 @@ class HeadingAligner:
             for column in (self.zxs, self.zys, self.oxs, self.oys):
                 del column[: MAX_POINTS // 2]
 
-    def check(self, r: float, *, whole: bool = False) -> RotationFit | None:
-        """The window's rotation fit once it has 40 % of its travel, or all of it when `whole` (None before, or when
-        untrustworthy).
+    def check(
+        self, r: float, now_t: float, now: tuple[float, float, float], dist: float, *, whole: bool = False
+    ) -> RotationFit | None:
+        """The window's rotation fit once it has 40 % of its travel, or all of it when `whole` (None before, between
+        fits, or when untrustworthy); at now_t the odometry pose is `now` after `dist` of travel.
 
-        A window that reached its full length is closed (a new one starts), so that a heading gone wrong at any time
-        (unknown at start, a robot turned while carried, slip the model did not expect) is caught within one window.
+        Fits are spaced FIT_SPACING of the window's travel apart (the fixes between two fits change little). A window
+        that reached its full length is closed (a new one starts), so that a heading gone wrong at any time (unknown
+        at start, a robot turned while carried, slip the model did not expect) is caught within one window.
         """
-        if not self.enabled or len(self.zxs) < 6 or self.dist < (1.0 if whole else 0.4) * self.window_m:
+        if not self.enabled or math.isinf(self.start_t):
             return None
+        travelled = dist - self.start_dist
+        full = travelled >= self.window_m
+        if len(self.zxs) < 6 or travelled < (1.0 if whole else 0.4) * self.window_m:
+            return None
+        if not full and travelled - self.last_fit_dist < FIT_SPACING * self.window_m:
+            return None
+        self.last_fit_dist = travelled
+        self.next_fit = self.start_dist + min(travelled + FIT_SPACING * self.window_m, self.window_m)
         fit = fit_rotation(self.oxs, self.oys, self.zxs, self.zys, 4.0 * math.sqrt(r))
-        odo, window = self.odo, self.window
-        if self.dist >= self.window_m:
-            self.restart()
+        odo, window = self.in_window(now), self.window
+        if full:
+            self.restart(now_t, now, dist)
         if fit is None:
             return None
         rotation, sigma, tx, ty = fit

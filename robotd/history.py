@@ -1,9 +1,13 @@
-"""The estimator's short history of states, and the prediction that re-creates it after a late fix.
+"""The estimator's short history: the states that fixes left (anchors) on the odometry track, and the state at any
+time since the oldest.
 
-Each input step and each fix leaves an entry: the state after it and the event that produced it. A fix measured in
-the past is fused by rewinding to the last entry before its measurement time; every later entry is then re-created
-from its event (`Predictor.step` for inputs), so that a late fix lands exactly where an on-time one would. Entries
-older than `keep_s` before the newest are dropped; without latency compensation only the newest is kept. Pure.
+An anchor is the state at one instant (a fix's measurement time, or a restart). The state at a later time t is the
+newest anchor at or before t carried forward: through the rest of the step it falls in, then across whole steps in
+O(1) (robotd.track), then through the part of the step that contains t, or beyond the newest step with the twist in
+force. A fix measured in the past is fused at the anchor it makes there; the anchors after it are then made again
+from their fixes, so a late fix lands exactly where an on-time one would, at a cost that does not grow with how
+late it is. Anchors older than `keep_s` before the newest input are dropped (the newest of them stays: it carries
+the state). Pure.
 """
 
 from __future__ import annotations
@@ -11,31 +15,62 @@ from __future__ import annotations
 import bisect
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 from robotd import ekf
+from robotd.track import UNKNOWN_HEADING_CORRELATION_S, OdometryTrack, State
 
 Twist3 = tuple[float, float, float]
-TRIM_MIN_ENTRIES = 64  # trimming is amortised: a few dozen entries are cheaper to keep than to cut one by one
-UNKNOWN_HEADING_CORRELATION_S = 1.0  # how long a velocity error from an unknown heading is taken to persist
+SHORT_RUN = 3  # runs of up to this many whole steps are taken one by one (cheaper than the closed form)
 
 
-@dataclass(slots=True)
-class Entry:
-    """The state after one event, and the event (to apply again after a late fix)."""
+class FixRecord(NamedTuple):
+    """What a fix did at its anchor, to do again after a later fix was placed before it.
+
+    `fused`: it was fused (fuse it again); otherwise `seed` says where it moved the beacon (a re-seed), or neither
+    (it was only recorded). A NamedTuple, as Anchor.
+    """
+
+    zx: float
+    zy: float
+    r: float
+    fused: bool
+    seed: tuple[float, float] | None = None
+
+
+class Anchor(NamedTuple):
+    """The state at time t, and the fix that left it there (None for a restart or a carried state).
+
+    A NamedTuple: as immutable as a frozen dataclass, and built several times faster (once or twice per fix).
+    """
 
     t: float
     x: float
     y: float
     theta: float
     p: ekf.Cov
-    u: Twist3  # twist in force after t
-    step_u: Twist3 | None  # input event: twist used over (previous t, t]; None for a fix
-    fix: tuple[float, float, float, bool] | None  # fix event: zx, zy, r, fused
+    fix: FixRecord | None
+
+    @property
+    def state(self) -> State:
+        """x, y, theta, P."""
+        return self.x, self.y, self.theta, self.p
+
+
+def widen_for_unknown_heading(p: Any, vx: Any, vy: Any, dt: Any) -> Any:
+    """P after a step of (vx, vy) for dt with the heading unknown: floats, or arrays of many steps.
+
+    The guessed direction may be off by anything: a velocity error of up to twice the speed, correlated over
+    UNKNOWN_HEADING_CORRELATION_S (white noise of that density: no state to carry through re-predictions); the
+    position keeps no correlation with the heading.
+    """
+    q = 4.0 * (vx * vx + vy * vy) * dt * UNKNOWN_HEADING_CORRELATION_S
+    xx, xy, xt, yy, yt, tt = p
+    return xx + q, xy, 0.0 * xt, yy + q, 0.0 * yt, tt
 
 
 class Predictor:
-    """Moves a state forward with a twist (eqs. 5-7): robotd at the midpoint heading, the paper at the start."""
+    """Moves a state over part of one step (eqs. 5-7): robotd at the midpoint heading, the paper at the start."""
 
     def __init__(self, noise: ekf.ControlNoise, *, midpoint: bool) -> None:
         self.noise = noise
@@ -48,98 +83,108 @@ class Predictor:
         # not defend a guess; the heading itself comes from the first whole alignment window.
         self.heading_known = True
 
-    def _moved(self, prev: Entry, u: Twist3, dt: float) -> tuple[float, float, float, ekf.Cov]:
-        x, y, theta, p = self._move(prev.x, prev.y, prev.theta, prev.p, u[0], u[1], u[2], dt)
+    def move(self, state: State, u: Twist3, dt: float) -> State:
+        """The state moved by twist u for dt (> 0), with the process noise of that motion."""
+        x, y, theta, p = self._move(state[0], state[1], state[2], state[3], u[0], u[1], u[2], dt)
         if self.heading_known:
             return x, y, theta, p
-        # the guessed direction may be off by anything: a velocity error of up to twice the speed, correlated over
-        # UNKNOWN_HEADING_CORRELATION_S (white noise of that density: no state to carry through re-predictions)
-        q = 4.0 * (u[0] * u[0] + u[1] * u[1]) * dt * UNKNOWN_HEADING_CORRELATION_S
-        xx, xy, _, yy, _, tt = p
-        return x, y, theta, (xx + q, xy, 0.0, yy + q, 0.0, tt)
-
-    def step(self, prev: Entry, t: float, u: Twist3) -> Entry:
-        """The state predicted from prev to t with twist u; its `u` is u, it records no event."""
-        dt = t - prev.t
-        if dt <= 0.0:
-            return Entry(t, prev.x, prev.y, prev.theta, prev.p, u, None, None)
-        x, y, theta, p = self._moved(prev, u, dt)
-        return Entry(t, x, y, theta, p, u, None, None)
-
-    def input_step(self, prev: Entry, t: float, step_u: Twist3, next_u: Twist3) -> Entry:
-        """The entry of an input event: the state predicted from prev to t with step_u, next_u in force after t."""
-        dt = t - prev.t
-        if dt <= 0.0:
-            return Entry(t, prev.x, prev.y, prev.theta, prev.p, next_u, step_u, None)
-        x, y, theta, p = self._moved(prev, step_u, dt)
-        return Entry(t, x, y, theta, p, next_u, step_u, None)
+        widened: ekf.Cov = widen_for_unknown_heading(p, u[0], u[1], dt)
+        return x, y, theta, widened
 
 
 class History:
-    """Entries in time order (`times` mirrors their `t` for bisection); the newest is the current state."""
+    """Anchors in time order on an odometry track; `visible` steps of the track are known (a replay may load more)."""
 
-    def __init__(self, first: Entry, keep_s: float, *, keep_past: bool) -> None:
-        self.entries = [first]
+    def __init__(self, track: OdometryTrack, predictor: Predictor, first: Anchor, keep_s: float, *, keep_past: bool):
+        self.track = track
+        self.predictor = predictor
+        self.anchors = [first]
         self.times = [first.t]
         self.keep_s = keep_s
         self.keep_past = keep_past
+        self.visible = 0  # how many of the track's steps (list indices) are in force
 
     @property
-    def last(self) -> Entry:
-        """The newest entry: the current state."""
-        return self.entries[-1]
+    def newest(self) -> Anchor:
+        """The newest anchor."""
+        return self.anchors[-1]
 
     @property
     def start(self) -> float:
-        """The time of the oldest entry: fixes measured before it cannot be placed."""
+        """The oldest time a fix can be placed at."""
         return self.times[0]
 
-    def set_last_time(self, t: float) -> None:
-        """Give the newest entry a time (the first input or fix sets the clock)."""
-        self.entries[-1].t = t
-        self.times[-1] = t
-
-    def append(self, entry: Entry) -> None:
-        """Add the newest entry, dropping entries older than keep_s."""
-        self.entries.append(entry)
-        self.times.append(entry.t)
-        if not self.keep_past:
-            del self.entries[:-1], self.times[:-1]
-            return
-        horizon = entry.t - self.keep_s
-        if self.times[0] < horizon and len(self.times) > TRIM_MIN_ENTRIES:
-            cut = bisect.bisect_left(self.times, horizon) - 1
-            if cut > 0:
-                del self.entries[:cut], self.times[:cut]
+    def reset(self, anchor: Anchor) -> None:
+        """Forget the past: the history starts again at anchor."""
+        self.anchors = [anchor]
+        self.times = [anchor.t]
 
     def index_at(self, t: float) -> int:
-        """The index of the last entry at or before t."""
+        """The index of the last anchor at or before t."""
         return bisect.bisect_right(self.times, t) - 1
 
-    def rewrite(self, k: int, entry: Entry, reapply: Callable[[Entry, Entry], Entry]) -> None:
-        """Put entry after index k, then re-create every later entry from its event with reapply(previous, event)."""
-        tail = self.entries[k + 1 :]
-        del self.entries[k + 1 :], self.times[k + 1 :]
-        self.entries.append(entry)
-        self.times.append(entry.t)
-        prev = entry
-        for event in tail:
-            prev = reapply(prev, event)
-            self.entries.append(prev)
-            self.times.append(prev.t)
+    def newest_step_t(self) -> float:
+        """The end time of the newest visible step (-inf before the clock started)."""
+        return self.track.t[self.visible - 1] if self.visible else -math.inf
+
+    def state_at(self, anchor: Anchor, t: float, pending: Callable[[], Twist3]) -> State:
+        """The state at t >= anchor.t: anchor carried over the visible steps, then with pending() past the newest."""
+        track, vis, move = self.track, self.visible, self.predictor.move
+        steps_t = track.t
+        state = anchor.state
+        at = anchor.t
+        i = bisect.bisect_right(steps_t, at, 0, vis) - 1  # the step the anchor falls after
+        if i + 1 >= vis:  # nothing known after the anchor: extrapolate
+            return move(state, pending(), t - at) if t > at else state
+        b = i + 1
+        vx, vy, wz = track.vx, track.vy, track.wz
+        if t <= steps_t[b]:
+            return move(state, (vx[b], vy[b], wz[b]), t - at) if t > at else state
+        state = move(state, (vx[b], vy[b], wz[b]), steps_t[b] - at)
+        j = bisect.bisect_right(steps_t, t, b, vis) - 1
+        if j - b <= SHORT_RUN:
+            for k in range(b + 1, j + 1):
+                state = move(state, (vx[k], vy[k], wz[k]), steps_t[k] - steps_t[k - 1])
+        else:
+            # (with the heading unknown, `move` left no heading correlations: the closed form needs none)
+            state = track.across(b, j, state, heading_known=self.predictor.heading_known)
+        if t > steps_t[j]:
+            u = (vx[j + 1], vy[j + 1], wz[j + 1]) if j + 1 < vis else pending()
+            state = move(state, u, t - steps_t[j])
+        return state
+
+    def place(
+        self, k: int, anchor: Anchor, remake: Callable[[State, Anchor], Anchor], pending: Callable[[], Twist3]
+    ) -> None:
+        """Put anchor after index k, then make every later anchor again from its fix with remake(state there, it)."""
+        later = self.anchors[k + 1 :]
+        del self.anchors[k + 1 :], self.times[k + 1 :]
+        self.anchors.append(anchor)
+        self.times.append(anchor.t)
+        for old in later:
+            made = remake(self.state_at(self.anchors[-1], old.t, pending), old)
+            self.anchors.append(made)
+            self.times.append(made.t)
         if not self.keep_past:
-            del self.entries[:-1], self.times[:-1]
+            del self.anchors[:-1], self.times[:-1]
 
-    def reset(self, entry: Entry) -> None:
-        """Forget the past: the history starts again at entry."""
-        self.entries = [entry]
-        self.times = [entry.t]
+    def trim(self, now: float, pending: Callable[[], Twist3]) -> int:
+        """Drop anchors older than keep_s before now (keeping the newest of them), and carry a lone old anchor forward
+        so that the steps behind it can go; returns the first step (list index) still needed."""
+        horizon = now - self.keep_s
+        anchors, times = self.anchors, self.times
+        if len(times) > 1 and times[1] <= horizon:
+            cut = bisect.bisect_right(times, horizon) - 1
+            del anchors[:cut], times[:cut]
+        if times[0] < horizon - self.keep_s and self.visible:
+            # a long outage: carry the base anchor to the newest step before the horizon (what it would be there)
+            steps_t = self.track.t
+            j = bisect.bisect_right(steps_t, horizon, 0, self.visible) - 1
+            if j >= 0 and steps_t[j] > times[0] and (len(times) == 1 or steps_t[j] < times[1]):
+                x, y, th, p = self.state_at(anchors[0], steps_t[j], pending)
+                anchors[0] = Anchor(steps_t[j], x, y, th, p, None)
+                times[0] = steps_t[j]
+        return max(bisect.bisect_right(self.track.t, times[0], 0, self.visible) - 1, 0)
 
 
-def initial_entry(pose: tuple[float, float, float], p: ekf.Cov) -> Entry:
-    """The state before any input: no time yet, at rest."""
-    x, y, theta = pose
-    return Entry(-math.inf, x, y, ekf.wrap_angle(theta), p, (0.0, 0.0, 0.0), None, None)
-
-
-__all__ = ["Entry", "History", "Predictor", "Twist3", "initial_entry"]
+__all__ = ["Anchor", "FixRecord", "History", "Predictor", "State", "Twist3", "widen_for_unknown_heading"]

@@ -1,7 +1,8 @@
 """Replay a sensor log through odometry alone, the paper's filter and robotd's filter, and score them against truth.
 
-Every method sees the same events in arrival order; an estimate is taken after each fix and at most every
-`OUTPUT_PERIOD_S` of input time, from the events that arrived until then (causal). Odometry alone is given the
+Every method sees the same events in arrival order; an estimate is taken every `OUTPUT_PERIOD_S` of log time (at
+the first event at least that long after the previous estimate: the daemon's pose stream), from the events that
+arrived until then (causal). Odometry alone is given the
 true initial pose (its heading fitted to the first metre of truth when truth has none): the most favourable start,
 so that it is a fair baseline. The filters start from the configuration. The baselines exist only to be scored: a
 log without truth runs robotd's filter alone (their tracks stay empty).
@@ -9,6 +10,7 @@ log without truth runs robotd's filter alone (their tracks stay empty).
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import json
 import math
@@ -16,28 +18,31 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
-from robotd import deadreckoning, kinematics
+from robotd import deadreckoning, ekf, kinematics
 from robotd.config import RobotdConfig
 from robotd.estimator import Diagnostics, Estimator
-from robotd.logfile import IpsFix, IpsLost, SensorLog, TwistSample
+from robotd.logfile import Event, IpsFix, IpsLost, SensorLog, TwistSample
 from robotd.metrics import ErrorStats, TruthTrack, fit_rotation, score, score_fixes
+from robotd.wheelsteps import step_ends
 
-OUTPUT_PERIOD_S = 0.05
+OUTPUT_PERIOD_S = 0.05  # the daemon's default pose rate (pose_socket.rate_hz: 20)
 # one estimates.jsonl line: {"t", "x", "y", "theta", "cov"} (cov 3x3 row-major); one % per line is the fastest writer
 ESTIMATE_LINE = '{"t": %.6f, "x": %.6f, "y": %.6f, "theta": %.6f, "cov": [' + ", ".join(["%.9g"] * 9) + "]}\n"
 METHODS = ("odometry", "ips", "paper_ekf", "ekf")
+WRITE_LINES = 8192  # estimates formatted per write
 
 
 @dataclass(slots=True)
 class Track:
-    """A method's estimates over time; `cov` (3x3 row-major) is empty for odometry computed by robotd.deadreckoning."""
+    """A method's estimates over time; `cov` (P's upper triangle: xx, xy, xt, yy, yt, tt) is empty for odometry."""
 
     t: list[float] = field(default_factory=list)
     x: list[float] = field(default_factory=list)
     y: list[float] = field(default_factory=list)
     theta: list[float] = field(default_factory=list)
-    cov: list[tuple[float, ...]] = field(default_factory=list)
+    cov: list[ekf.Cov] | npt.NDArray[np.float64] = field(default_factory=list)
 
 
 @dataclass(slots=True)
@@ -94,19 +99,6 @@ def robot_from_log(
     return geometry, offset, cpr, problems
 
 
-def _record(track: Track, t: float, est: Estimator) -> None:
-    """Append the estimate at t; a filter that has no position yet (no fix seeded it) has no output."""
-    position = est.position(t)
-    if position is None:
-        return
-    x, y, theta, p = position
-    track.t.append(t)
-    track.x.append(x)
-    track.y.append(y)
-    track.theta.append(theta)
-    track.cov.append((p[0], p[1], p[2], p[1], p[3], p[4], p[2], p[4], p[5]))  # ekf.cov_full, inlined
-
-
 def _record_odometry(track: Track, t: float, est: Estimator) -> None:
     """Append the dead-reckoning estimate at t (an Estimator that never sees a fix: always has a pose)."""
     pose = est.pose(t)
@@ -114,16 +106,22 @@ def _record_odometry(track: Track, t: float, est: Estimator) -> None:
     track.x.append(pose.x)
     track.y.append(pose.y)
     track.theta.append(pose.theta)
-    track.cov.append(pose.cov)
+
+
+def _marked_track(est: Estimator) -> Track:
+    """The outputs an estimator marked, as a Track."""
+    t, x, y, theta, cov = est.marked()
+    return Track(t, x, y, theta, cov)
 
 
 def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     """Run the three methods over a parsed log and score them when it holds truth (robotd's filter alone without).
 
     The log is read as columns (SensorLog.columns): wheel samples reach the filters in runs between the other
-    events (Estimator.on_wheel_samples), the same inputs in the same order as one on_wheels call each. Odometry alone
-    is computed for the whole log at once (robotd.deadreckoning) when its wheel times are clean and it has no twist
-    samples, and with a third Estimator otherwise.
+    events (Estimator.on_wheel_samples), the same inputs in the same order as one on_wheels call each; without twist
+    samples, a clean wheel column is loaded at once (Estimator.load_wheels) and the outputs are marked and computed
+    together at the end (Estimator.mark). Odometry alone is computed for the whole log at once (robotd.deadreckoning)
+    when its wheel times are clean and it has no twist samples, and with a third Estimator otherwise.
     """
     geometry, offset, cpr, problems = robot_from_log(log, config)
     columns = log.columns()
@@ -131,9 +129,6 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     robotd = Estimator(config.ekf, geometry, offset, cpr)
     paper = Estimator.paper_filter(config.ekf, geometry, cpr) if scored else None
     times: list[float] = columns.wheels_t.tolist()
-    ticks: list[tuple[int, int, int, int]] = list(
-        zip(*(column.tolist() for column in columns.wheels_ticks.T), strict=True)
-    )
     others = columns.others
     after: list[int] = columns.others_after().tolist()
     vectorised = deadreckoning.applies(columns.wheels_t) and not any(type(e) is TwistSample for e in others)
@@ -142,41 +137,18 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
         odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later
         odometry = Estimator(odo_config, geometry, offset, cpr)
     filters = tuple(est for est in (robotd, paper, odometry) if est is not None)
-    tracks = (Track(), Track(), Track())
+    has_twists = any(type(e) is TwistSample for e in others)
+    # a clean wheel column makes all its prediction steps at once (numpy), and outputs are computed together
+    loaded = False
+    if not has_twists and odometry is None:
+        outcomes = [est.load_wheels(columns.wheels_t, columns.wheels_ticks) for est in filters]
+        loaded = all(outcomes)  # (the same columns: all or none)
+    odometry_track = Track()
     odo_records: tuple[list[float], list[int]] = ([], [])  # record times and wheel samples before them
     fixes: list[tuple[float, float, float]] = []
     diagnostics: list[Diagnostics] = []
-    last_out = -math.inf
-    fed = 0  # wheel samples given to the filters
 
-    def record(t: float, samples: int) -> None:
-        _record(tracks[0], t, robotd)
-        if paper is None:
-            return
-        _record(tracks[1], t, paper)
-        if odometry is not None:
-            _record_odometry(tracks[2], t, odometry)
-        else:
-            odo_records[0].append(t)
-            odo_records[1].append(samples)
-
-    for index in range(len(others) + 1):
-        stop = after[index] if index < len(others) else len(times)
-        # the wheel samples before this event, with an output every OUTPUT_PERIOD_S of their times
-        for i in range(fed, stop):
-            if times[i] - last_out >= OUTPUT_PERIOD_S:
-                for est in filters:
-                    est.on_wheel_samples(times, ticks, fed, i + 1)
-                fed = i + 1
-                record(times[i], fed)
-                last_out = times[i]
-        if fed < stop:
-            for est in filters:
-                est.on_wheel_samples(times, ticks, fed, stop)
-            fed = stop
-        if index == len(others):
-            break
-        event = others[index]
+    def on_event(event: Event) -> None:
         if type(event) is IpsFix:
             diagnostic = robotd.on_fix(event.t, event.x, event.y, event.t_meas)
             if diagnostic is not None:
@@ -185,33 +157,87 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
                 paper.on_fix(event.t, event.x, event.y, event.t_meas)
             if math.isfinite(event.x) and math.isfinite(event.y) and math.isfinite(event.t_meas):
                 fixes.append((event.t_meas, event.x, event.y))
-            record(event.t, fed)
-            last_out = event.t
         elif type(event) is TwistSample:
             for est in filters:
                 est.on_twist(event.t, event.vx, event.vy, event.wz)
-            if event.t - last_out >= OUTPUT_PERIOD_S:
-                record(event.t, fed)
-                last_out = event.t
         elif type(event) is IpsLost:
             robotd.on_fix_lost(event.t)
             if paper is not None:
                 paper.on_fix_lost(event.t)
+
+    if loaded:
+        # outputs at the wheel samples that end each OUTPUT_PERIOD_S, marked in runs between the other events
+        marks = step_ends(times, OUTPUT_PERIOD_S)
+        mark_array = np.array(marks, dtype=np.int64)
+        fed = marked = 0
+        for index in range(len(others) + 1):
+            stop = after[index] if index < len(others) else len(times)
+            if fed < stop:
+                for est in filters:
+                    est.on_wheel_samples(times, [], fed, stop)  # (loaded: the samples are the estimator's)
+                fed = stop
+            upto = bisect.bisect_left(marks, stop, marked)
+            if upto > marked:
+                for est in filters:
+                    est.mark_samples(mark_array[marked:upto])
+                marked = upto
+            if index < len(others):
+                on_event(others[index])
+        odo_records[0].extend(columns.wheels_t[mark_array].tolist())
+        odo_records[1].extend((mark_array + 1).tolist())
+    else:
+        # an output every OUTPUT_PERIOD_S of input time (wheel samples, twists; fixes only in a log without inputs)
+        inputs = bool(times) or has_twists
+        ticks: list[tuple[int, int, int, int]] = list(
+            zip(*(column.tolist() for column in columns.wheels_ticks.T), strict=True)
+        )
+        last_out = -math.inf
+        fed = 0
+
+        def record(t: float, samples: int) -> None:
+            robotd.mark(t)
+            if paper is None:
+                return
+            paper.mark(t)
+            if odometry is not None:
+                _record_odometry(odometry_track, t, odometry)
+            else:
+                odo_records[0].append(t)
+                odo_records[1].append(samples)
+
+        for index in range(len(others) + 1):
+            stop = after[index] if index < len(others) else len(times)
+            for i in range(fed, stop):
+                if times[i] - last_out >= OUTPUT_PERIOD_S:
+                    for est in filters:
+                        est.on_wheel_samples(times, ticks, fed, i + 1)
+                    fed = i + 1
+                    record(times[i], fed)
+                    last_out = times[i]
+            if fed < stop:
+                for est in filters:
+                    est.on_wheel_samples(times, ticks, fed, stop)
+                fed = stop
+            if index == len(others):
+                break
+            event = others[index]
+            on_event(event)
+            output = type(event) is TwistSample or (type(event) is IpsFix and not inputs)
+            if output and event.t - last_out >= OUTPUT_PERIOD_S:
+                record(event.t, fed)
+                last_out = event.t
     if scored and odometry is None:
-        record_t = np.array(odo_records[0], dtype=np.float64)
         ox, oy, oth = deadreckoning.poses_at(
             columns.wheels_t,
             columns.wheels_ticks,
-            record_t,
+            np.array(odo_records[0], dtype=np.float64),
             np.array(odo_records[1], dtype=np.int64),
             geometry,
             cpr,
             config.ekf.predict_period_s,
         )
-        tracks[2].t.extend(odo_records[0])
-        tracks[2].x.extend(ox.tolist())
-        tracks[2].y.extend(oy.tolist())
-        tracks[2].theta.extend(oth.tolist())
+        odometry_track = Track(odo_records[0], ox.tolist(), oy.tolist(), oth.tolist())
+    tracks = (_marked_track(robotd), _marked_track(paper) if paper is not None else Track(), odometry_track)
     metrics = None
     if scored:
         reference = TruthTrack.from_array(columns.truth)
@@ -274,12 +300,14 @@ def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
     written = [out_dir / "estimates.jsonl"]
     e = result.ekf
     with open(written[0], "w", encoding="utf-8") as stream:
-        stream.writelines(
-            [
-                ESTIMATE_LINE % (t, x, y, th, *cov)
-                for t, x, y, th, cov in zip(e.t, e.x, e.y, e.theta, e.cov, strict=True)
-            ]
-        )
+        for start in range(0, len(e.t), WRITE_LINES):
+            stop = min(start + WRITE_LINES, len(e.t))
+            # the lines' numbers in line order (cov as ekf.cov_full), formatted by one % over many lines: the same
+            # text as one % per line, without a Python step per line
+            p = np.asarray(e.cov[start:stop], dtype=np.float64).reshape(-1, 6)
+            columns = (e.t[start:stop], e.x[start:stop], e.y[start:stop], e.theta[start:stop])
+            rows = np.column_stack([*columns, p[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]]])
+            stream.write((ESTIMATE_LINE * (stop - start)) % tuple(rows.ravel().tolist()))
     if result.metrics is not None:
         metrics = {name: (stats.as_dict() if stats is not None else None) for name, stats in result.metrics.items()}
         written.append(out_dir / "metrics.json")
