@@ -25,6 +25,7 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass
+from math import isfinite
 from typing import NamedTuple
 
 import numpy as np
@@ -41,6 +42,7 @@ from robotd.wheelsteps import TickKinematics, step_ends
 
 # An initial heading standard deviation above this says the heading is unknown (the robot was put down anywhere).
 HEADING_KNOWN_SIGMA_RAD = 0.5
+TRIM_ANCHORS = 64  # a replay trims its anchors when it has this many
 TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
 MIN_REALIGN_RAD = 0.35  # smaller heading errors are the EKF's own business: it corrects them from fixes in motion
 
@@ -127,7 +129,7 @@ class Estimator:
         # a whole log's wheel samples, loaded at once (load_wheels): as arrays, and their times, ticks and the samples
         # that end each step as lists (read one at a time); how many samples were fed; the outputs marked
         self._loaded: Loaded | None = None
-        self._loaded_lists: tuple[list[float], list[int]] = ([], [])  # times, step ends
+        self._loaded_lists: tuple[list[float], list[int], list[list[int]]] = ([], [], [])  # times, step ends, ticks
         self._fed = 0
         self._spans: list[
             tuple[npt.NDArray[np.int64], Anchor, bool]
@@ -204,7 +206,7 @@ class Estimator:
             self._set_clock(times_list[0])
         self._history.visible = 0
         self._loaded = Loaded(times, ticks, np.array(ends, dtype=np.int64))
-        self._loaded_lists = (times_list, ends)
+        self._loaded_lists = (times_list, ends, [column.tolist() for column in ticks.T])
         return True
 
     def on_wheel_samples(
@@ -289,14 +291,12 @@ class Estimator:
         """The twist beyond the newest step: that of the samples fed since (their mean), or the one in force."""
         track, vis = self._track, self._history.visible
         if self._loaded is not None:
-            times, ends = self._loaded_lists
+            times, ends, (c1, c2, c3, c4) = self._loaded_lists
             last = self._fed - 1
             if vis and last > ends[vis - 1]:
                 e = ends[vis - 1]
-                ticks = self._loaded.ticks
-                start, end = ticks[e].tolist(), ticks[last].tolist()
                 return self._kinematics.twist(
-                    (start[0], start[1], start[2], start[3]), (end[0], end[1], end[2], end[3]), times[last] - times[e]
+                    (c1[e], c2[e], c3[e], c4[e]), (c1[last], c2[last], c3[last], c4[last]), times[last] - times[e]
                 )
         else:
             u = self._tick_twist()
@@ -336,36 +336,37 @@ class Estimator:
 
     def on_fix(self, t: float, x: float, y: float, t_meas: float) -> Diagnostics | None:
         """An IPS fix of the beacon (m) that arrived at t and was measured at t_meas; returns its record."""
-        self.counters["fixes"] += 1
-        if not (math.isfinite(t) and math.isfinite(x) and math.isfinite(y)):
-            self.counters["dropped_non_finite"] += 1
+        counters = self.counters
+        counters["fixes"] += 1
+        if not (isfinite(t) and isfinite(x) and isfinite(y)):
+            counters["dropped_non_finite"] += 1
             return None
-        if not self._latency or not math.isfinite(t_meas):
+        if not self._latency or not isfinite(t_meas) or t_meas > t:
             t_meas = t
-        t_meas = min(t_meas, t)
         history = self._history
-        if history.start == -math.inf:
+        if history.times[0] == -math.inf:
             self._set_clock(t_meas)
-        newest_step = history.newest_step_t()
+        vis = history.visible
+        newest_step = self._track.t[vis - 1] if vis else -math.inf
         gate = self._fix_gate
-        if t_meas < history.start or (self._latency and t_meas < newest_step - self.config.history_s):
-            self.counters["fixes_too_old"] += 1
+        if t_meas < history.times[0] or (self._latency and t_meas < newest_step - self.config.history_s):
+            counters["fixes_too_old"] += 1
             nan = math.nan
             return Diagnostics(
                 t, t_meas, (nan, nan), (nan, nan, nan), nan, gate.gate, Verdict.TOO_OLD, math.sqrt(gate.r)
             )
-        k = history.index_at(t_meas)
-        if t_meas < newest_step or k < len(history.anchors) - 1:
-            self.counters["late_fixes"] += 1
-        prior = history.state_at(history.anchors[k], t_meas, self._pending)
+        anchors = history.anchors
+        k = bisect.bisect_right(history.times, t_meas) - 1
+        if t_meas < newest_step or k < len(anchors) - 1:
+            counters["late_fixes"] += 1
+        prior = history.state_at(anchors[k], t_meas, self._pending)
         px, py, pth, pp = prior
-        ox, oy = self._offset
         r = gate.r
-        inn = ekf.innovation(px, py, pth, pp, x, y, r, ox, oy)
+        inn = ekf.innovation(px, py, pth, pp, x, y, r, self._offset[0], self._offset[1])
         verdict = gate.judge(t_meas, inn, r)
         aligner = self._aligner
-        if gate.seeded and aligner.enabled:
-            if math.isinf(aligner.start_t):
+        if aligner.enabled and gate.seeded:
+            if aligner.start_t == math.inf:
                 self._restart_window()  # the first window starts with the first seeded fix
             aligner.record(x, y, t_meas, self._odometry_at(t_meas))
         if verdict is Verdict.ACCEPTED:
@@ -375,13 +376,11 @@ class Estimator:
         else:
             anchor = Anchor(t_meas, px, py, pth, pp, FixRecord(x, y, r, fused=False))
         history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
-        if verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED or verdict is Verdict.ACCEPTED:
+        if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
-        if (
-            aligner.enabled
-            and self._history.visible
-            and self._track.dist[self._history.visible - 1] >= aligner.next_fit
-        ):
+        if len(anchors) > TRIM_ANCHORS and self._loaded is not None:
+            history.trim(newest_step, self._pending)  # (fed one by one, the steps trim the anchors: _step_to)
+        if aligner.enabled and vis and self._track.dist[vis - 1] >= aligner.next_fit:
             self._maybe_realign()
         return Diagnostics(
             t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)

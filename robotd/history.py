@@ -83,6 +83,18 @@ class Predictor:
         # not defend a guess; the heading itself comes from the first whole alignment window.
         self.heading_known = True
 
+    def stepper(self) -> ekf.MotionStep:
+        """move() as a function of (x, y, theta, P, vx, vy, wz, dt), for the current heading mode."""
+        if self.heading_known:
+            return self._move
+
+        def step(  # noqa: PLR0917 - as ekf.motion_step
+            x: float, y: float, theta: float, p: ekf.Cov, vx: float, vy: float, wz: float, dt: float
+        ) -> State:
+            return self.move((x, y, theta, p), (vx, vy, wz), dt)
+
+        return step
+
     def move(self, state: State, u: Twist3, dt: float) -> State:
         """The state moved by twist u for dt (> 0), with the process noise of that motion."""
         x, y, theta, p = self._move(state[0], state[1], state[2], state[3], u[0], u[1], u[2], dt)
@@ -129,29 +141,34 @@ class History:
 
     def state_at(self, anchor: Anchor, t: float, pending: Callable[[], Twist3]) -> State:
         """The state at t >= anchor.t: anchor carried over the visible steps, then with pending() past the newest."""
-        track, vis, move = self.track, self.visible, self.predictor.move
+        track, vis, step = self.track, self.visible, self.predictor.stepper()
         steps_t = track.t
-        state = anchor.state
+        x, y, th, p = anchor.state
         at = anchor.t
         i = bisect.bisect_right(steps_t, at, 0, vis) - 1  # the step the anchor falls after
         if i + 1 >= vis:  # nothing known after the anchor: extrapolate
-            return move(state, pending(), t - at) if t > at else state
+            if t <= at:
+                return x, y, th, p
+            vx0, vy0, wz0 = pending()
+            return step(x, y, th, p, vx0, vy0, wz0, t - at)
         b = i + 1
         vx, vy, wz = track.vx, track.vy, track.wz
         if t <= steps_t[b]:
-            return move(state, (vx[b], vy[b], wz[b]), t - at) if t > at else state
-        state = move(state, (vx[b], vy[b], wz[b]), steps_t[b] - at)
+            return step(x, y, th, p, vx[b], vy[b], wz[b], t - at) if t > at else (x, y, th, p)
+        x, y, th, p = step(x, y, th, p, vx[b], vy[b], wz[b], steps_t[b] - at)
         j = bisect.bisect_right(steps_t, t, b, vis) - 1
         if j - b <= SHORT_RUN:
             for k in range(b + 1, j + 1):
-                state = move(state, (vx[k], vy[k], wz[k]), steps_t[k] - steps_t[k - 1])
+                x, y, th, p = step(x, y, th, p, vx[k], vy[k], wz[k], steps_t[k] - steps_t[k - 1])
         else:
-            # (with the heading unknown, `move` left no heading correlations: the closed form needs none)
-            state = track.across(b, j, state, heading_known=self.predictor.heading_known)
+            # (with the heading unknown, `step` left no heading correlations: the closed form needs none)
+            x, y, th, p = track.across(b, j, (x, y, th, p), heading_known=self.predictor.heading_known)
         if t > steps_t[j]:
-            u = (vx[j + 1], vy[j + 1], wz[j + 1]) if j + 1 < vis else pending()
-            state = move(state, u, t - steps_t[j])
-        return state
+            if j + 1 < vis:
+                return step(x, y, th, p, vx[j + 1], vy[j + 1], wz[j + 1], t - steps_t[j])
+            vx0, vy0, wz0 = pending()
+            return step(x, y, th, p, vx0, vy0, wz0, t - steps_t[j])
+        return x, y, th, p
 
     def place(
         self, k: int, anchor: Anchor, remake: Callable[[State, Anchor], Anchor], pending: Callable[[], Twist3]
