@@ -212,7 +212,7 @@ class EkfConfig:
     )
     lever_arm: bool = setting(True, "Model the beacon's lever arm (robot.ips_offset_m): the fix depends on theta.")
     latency_compensation: bool = setting(
-        True, "Fuse each fix at its measurement time by re-predicting from a short history of states and inputs."
+        True, "Fuse each fix at its measurement time, from the state the filter had then (kept as a short history)."
     )
     history_s: float = setting(
         1.0,

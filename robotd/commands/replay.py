@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import gc
 import sys
 import time
 from pathlib import Path
@@ -11,7 +10,7 @@ from pathlib import Path
 from robotd import librsf
 from robotd.config import RobotdConfig, load, parse
 from robotd.logfile import read_log
-from robotd.replay import format_table, replay, write_outputs
+from robotd.replay import cyclic_gc_paused, format_table, replay, write_outputs
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -34,15 +33,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 def run_replay(args: argparse.Namespace) -> int:
     """Replay the log, write the outputs, print the table; 1 when the log cannot be read."""
     config: RobotdConfig = load(args.config) if args.config else parse("")
-    # A replay builds a few hundred thousand long-lived objects and no reference cycles: the cyclic collector's
-    # passes over them would be pure cost (a fifth of the run). It is paused for the run, and restored after.
-    paused = gc.isenabled()
-    gc.disable()
-    try:
+    with cyclic_gc_paused():
         return _replay(args, config)
-    finally:
-        if paused:
-            gc.enable()
 
 
 def _replay(args: argparse.Namespace, config: RobotdConfig) -> int:
