@@ -8,11 +8,12 @@ replays everything it can.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections import Counter
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -20,127 +21,19 @@ import numpy as np
 import numpy.typing as npt
 
 from robotd import logbulk
-
-FORMAT = "robotd-log"
-VERSION = 1
-
-
-@dataclass(frozen=True, slots=True)
-class Meta:
-    """The log's header: robot geometry overrides (all optional) and a free-text source."""
-
-    robot: dict[str, Any] = field(default_factory=dict)
-    source: str = ""
-
-
-@dataclass(frozen=True, slots=True)
-class Wheels:
-    """Cumulative decoded encoder counts, wheel order FL FR RL RR."""
-
-    t: float
-    ticks: tuple[int, int, int, int]
-
-
-@dataclass(frozen=True, slots=True)
-class TwistSample:
-    """A measured body velocity (m/s, rad/s): the alternative to wheel ticks."""
-
-    t: float
-    vx: float
-    vy: float
-    wz: float
-
-
-@dataclass(frozen=True, slots=True)
-class IpsFix:
-    """A valid IPS fix of the beacon (m); t_meas is when it was measured."""
-
-    t: float
-    x: float
-    y: float
-    z: float
-    t_meas: float
-
-
-@dataclass(frozen=True, slots=True)
-class IpsLost:
-    """A position packet flagged "coordinates unavailable"."""
-
-    t: float
-
-
-@dataclass(frozen=True, slots=True)
-class Truth:
-    """Ground truth of the robot's centre, for evaluation only."""
-
-    t: float
-    x: float
-    y: float
-    theta: float
-
-
-@dataclass(frozen=True, slots=True)
-class Command:
-    """A teleop command (body frame)."""
-
-    t: float
-    vx: float
-    vy: float
-    wz: float
-
-
-Event = Wheels | TwistSample | IpsFix | IpsLost | Truth | Command
-
-
-def _num(value: float) -> float:
-    # Six decimals: microseconds and micrometres, below every sensor's resolution; keeps logs short and stable.
-    return round(value, 6)
-
-
-def encode(event: Event | Meta) -> str:
-    """One event as its JSON line (without the newline)."""
-    match event:
-        case Meta():
-            obj: dict[str, Any] = {
-                "type": "meta",
-                "format": FORMAT,
-                "version": VERSION,
-                "robot": event.robot,
-                "source": event.source,
-            }
-        case Wheels():
-            obj = {"t": _num(event.t), "type": "wheels", "ticks": list(event.ticks)}
-        case TwistSample():
-            obj = {
-                "t": _num(event.t),
-                "type": "twist",
-                "vx": _num(event.vx),
-                "vy": _num(event.vy),
-                "wz": _num(event.wz),
-            }
-        case IpsFix():
-            obj = {
-                "t": _num(event.t),
-                "type": "ips",
-                "x": _num(event.x),
-                "y": _num(event.y),
-                "z": _num(event.z),
-                "t_meas": _num(event.t_meas),
-            }
-        case IpsLost():
-            obj = {"t": _num(event.t), "type": "ips_lost"}
-        case Truth():
-            obj = {
-                "t": _num(event.t),
-                "type": "truth",
-                "x": _num(event.x),
-                "y": _num(event.y),
-            }
-            if math.isfinite(event.theta):  # truth without heading omits it (JSON has no NaN)
-                obj["theta"] = _num(event.theta)
-        case Command():
-            obj = {"t": _num(event.t), "type": "cmd", "vx": _num(event.vx), "vy": _num(event.vy), "wz": _num(event.wz)}
-    return json.dumps(obj, separators=(", ", ": "))
+from robotd.logevents import (
+    FORMAT,
+    VERSION,
+    Command,
+    Event,
+    IpsFix,
+    IpsLost,
+    Meta,
+    Truth,
+    TwistSample,
+    Wheels,
+    encode,
+)
 
 
 class LogWriter:
@@ -332,45 +225,44 @@ def parse_lines(lines: Iterable[str]) -> SensorLog:
     """Parse the lines of a sensor log; never raises on content."""
     texts = list(lines)
     stripped = [line.removesuffix("\n") for line in texts]
-    return _parse(stripped, texts)
+    text = "\n".join(stripped) + "\n" if texts else ""
+    if text.count("\n") != len(texts):  # a line holding a newline: keep it one line (it is not a standard one)
+        text = "".join(line.replace("\n", "\0") + "\n" for line in stripped)
+    # every line ends with a newline here, so the bulk reader sees them all; it reads only ASCII, a lone surrogate
+    # just makes the line a non-standard one, read from `texts`
+    return _parse(text.encode("utf-8", "surrogatepass"), texts)
 
 
 def read_log(path: str | Path) -> SensorLog:
     """Read a sensor log file."""
-    with open(path, encoding="utf-8", errors="replace") as stream:
-        text = stream.read()
-    lines = text.split("\n")
-    if lines[-1] == "":
-        del lines[-1]
-        return _parse(lines, None, newline_on_last=True)
-    return _parse(lines, None, newline_on_last=False)
+    data = Path(path).read_bytes()
+    if b"\r" in data:
+        # as a text-mode read does (universal newlines): '\r\n' and a lone '\r' end a line. ASCII bytes decode to
+        # themselves and end any invalid UTF-8 sequence, so this commutes with decoding
+        data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    return _parse(data, None)
 
 
-def _parse(lines: list[str], originals: list[str] | None, *, newline_on_last: bool = False) -> SensorLog:
-    """Parse lines (without their newline): standard lines in bulk (robotd.logbulk), the rest one by one.
+def _parse(text: bytes, originals: list[str] | None) -> SensorLog:
+    """Parse a text of lines: standard lines in bulk (robotd.logbulk), the rest one by one.
 
-    `originals` are the lines as given (for json.loads's error positions); None means each line had a newline,
-    except the last unless newline_on_last.
+    `originals` are the lines as given, each a line of `text` (for json.loads's error positions); None means the lines
+    are `text`'s, decoded as UTF-8 with errors replaced, with their newline if they have one.
     """
-    bulk = logbulk.parse_standard(lines)
+    bulk = logbulk.parse_standard(text)
     kinds = bulk.kinds
-    fixes = iter([IpsFix(t, x, y, z, t_meas) for t, x, y, z, t_meas in bulk.ips.tolist()])
     log = SensorLog()
-    others: list[Event] = []
-    extra_wheels: list[tuple[int, Wheels]] = []  # wheel samples that came through the per-line reader
+    extra_others: list[tuple[int, Event]] = []  # events other than fixes, from the per-line reader
+    extra_wheels: list[tuple[int, Wheels]] = []
     extra_truth: list[tuple[int, Truth]] = []
-    last = len(lines) - 1
-    pending = kinds >= logbulk.IPS_LINE
-    for index, kind in zip(np.flatnonzero(pending).tolist(), kinds[pending].tolist(), strict=True):
-        if kind == logbulk.IPS_LINE:
-            others.append(next(fixes))
-            kinds[index] = OTHER_KIND
-            continue
+    ends = bulk.line_ends
+    for index in np.flatnonzero(kinds == logbulk.PER_LINE).tolist():
         kinds[index] = logbulk.NO_EVENT  # unless it decodes to an event
         if originals is not None:
             line = originals[index]
         else:
-            line = lines[index] + "\n" if (index < last or newline_on_last) else lines[index]
+            start, end = int(ends[index - 1]) + 1 if index else 0, int(ends[index])
+            line = text[start:end].decode("utf-8", "replace") + ("\n" if end < len(text) else "")
         try:
             item = _parse_line(line)
             if isinstance(item, Wheels) and not all(-(2**63) <= n < 2**63 for n in item.ticks):
@@ -392,7 +284,8 @@ def _parse(lines: list[str], originals: list[str] | None, *, newline_on_last: bo
             extra_truth.append((index, item))
         else:
             kinds[index] = OTHER_KIND
-            others.append(item)
+            extra_others.append((index, item))
+    others = _others(kinds, bulk.ips, extra_others)
     wheels_t, wheels_ticks, truth = bulk.wheels_t, bulk.wheels_ticks, bulk.truth
     if extra_wheels:
         wheels_t, wheels_ticks = logbulk.merge_in_order(
@@ -413,6 +306,63 @@ def _parse(lines: list[str], originals: list[str] | None, *, newline_on_last: bo
     return SensorLog(log.meta, None, log.problems, log.unknown_types, columns=columns)
 
 
+def _others(kinds: npt.NDArray[np.int8], fixes: npt.NDArray[np.float64], extra: list[tuple[int, Event]]) -> list[Event]:
+    """The bulk-read fixes and the other events read line by line, in file order (the fixes' lines become OTHER)."""
+    fix_lines = np.flatnonzero(kinds == logbulk.IPS_LINE)
+    kinds[fix_lines] = OTHER_KIND
+    events = _fixes(fixes.tolist())
+    if not extra:
+        return events
+    events += [event for _, event in extra]
+    order = np.argsort(np.concatenate((fix_lines, [index for index, _ in extra])), kind="stable")
+    return [events[i] for i in order.tolist()]
+
+
+# IpsFix's fields' slots, in order: a frozen dataclass's __init__ sets each field through object.__setattr__, which
+# costs twice as much as filling the slots themselves; the fixes of a log are many
+_FIX_SLOTS = tuple(getattr(IpsFix, field.name).__set__ for field in dataclasses.fields(IpsFix))
+
+
+def _fixes(rows: list[list[float]]) -> list[Event]:
+    """IpsFix events of (t, x, y, z, t_meas) rows, as IpsFix(*row) builds them."""
+    set_t, set_x, set_y, set_z, set_t_meas = _FIX_SLOTS
+    new = object.__new__
+    events: list[Event] = []
+    for t, x, y, z, t_meas in rows:
+        fix = new(IpsFix)
+        set_t(fix, t)
+        set_x(fix, x)
+        set_y(fix, y)
+        set_z(fix, z)
+        set_t_meas(fix, t_meas)
+        events.append(fix)
+    return events
+
+
 def iter_events(log: SensorLog, *types: type[Event]) -> Iterator[Event]:
     """The log's events of the given types, in order."""
     return (event for event in log.events if isinstance(event, types))
+
+
+__all__ = [
+    "FORMAT",
+    "OTHER_KIND",
+    "TRUTH_KIND",
+    "VERSION",
+    "WHEELS_KIND",
+    "Columns",
+    "Command",
+    "Event",
+    "IpsFix",
+    "IpsLost",
+    "LogWriter",
+    "Meta",
+    "SensorLog",
+    "Truth",
+    "TwistSample",
+    "Wheels",
+    "encode",
+    "iter_events",
+    "parse_lines",
+    "read_log",
+]
