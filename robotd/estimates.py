@@ -9,7 +9,7 @@ a log's outputs are computed at the end in a few array operations, with the same
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple, cast
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -17,21 +17,13 @@ import numpy.typing as npt
 from robotd import ekf
 from robotd.history import Anchor, widen_for_unknown_heading
 from robotd.track import TrackArrays, carry
-from robotd.wheelsteps import TickKinematics
+from robotd.wheelsteps import Loaded, TickKinematics
 
 FloatArray = npt.NDArray[np.float64]
 
 
 Span = tuple[npt.NDArray[np.int64], Anchor, bool]
 """Outputs at some loaded wheel samples (indices), with the newest anchor then and whether the heading was known."""
-
-
-class Loaded(NamedTuple):
-    """A log's wheel samples as loaded by the estimator: times, cumulative ticks (n x 4), the samples ending steps."""
-
-    times: FloatArray
-    ticks: npt.NDArray[np.int64]
-    ends: npt.NDArray[np.int64]
 
 
 Columns = tuple[FloatArray, FloatArray, FloatArray, FloatArray, tuple[FloatArray, ...]]
@@ -129,4 +121,4 @@ def _carry(  # noqa: PLR0917 - the parts of many states, as arrays
     return out_x, out_y, out_th, out_p
 
 
-__all__ = ["Columns", "Loaded", "Span", "evaluate"]
+__all__ = ["Columns", "Span", "evaluate"]

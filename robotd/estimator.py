@@ -26,46 +26,23 @@ import bisect
 import math
 from dataclasses import dataclass
 from math import isfinite
-from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
 from robotd import ekf, kinematics
 from robotd.config import EkfConfig
-from robotd.estimates import Loaded, evaluate
-from robotd.fixgate import FixGate, TrackState, Verdict
-from robotd.heading import HeadingAligner, RotationFit
+from robotd.estimates import evaluate
+from robotd.fixgate import Diagnostics, FixGate, TrackState, Verdict
+from robotd.heading import HeadingAligner, HeadingCheck, RotationFit
 from robotd.history import Anchor, FixRecord, History, Predictor, State, Twist3
-from robotd.track import OdometryTrack, StepTwists, TrackArrays
-from robotd.wheelsteps import TickKinematics, step_ends
+from robotd.track import OdometryTrack, TrackArrays
+from robotd.wheelsteps import TickKinematics, WheelFeed
 
 # An initial heading standard deviation above this says the heading is unknown (the robot was put down anywhere).
 HEADING_KNOWN_SIGMA_RAD = 0.5
 TRIM_ANCHORS = 64  # a replay trims its anchors when it has this many
 TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
-MIN_REALIGN_RAD = 0.35  # smaller heading errors are the EKF's own business: it corrects them from fixes in motion
-
-
-class Diagnostics(NamedTuple):
-    """One fix's record: innovation nu, its covariance S (xx, xy, yy), NIS, the gate, the verdict.
-
-    A NamedTuple: immutable, and built several times faster than a frozen dataclass (once per fix).
-    """
-
-    t: float
-    t_meas: float
-    nu: tuple[float, float]
-    s: tuple[float, float, float]
-    nis: float
-    gate: float
-    verdict: Verdict
-    r_m: float
-
-    @property
-    def accepted(self) -> bool:
-        """Whether the fix moved the estimate."""
-        return self.verdict in (Verdict.ACCEPTED, Verdict.SEEDED, Verdict.RECOVERED)
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,16 +98,7 @@ class Estimator:
         first = Anchor(-math.inf, x0, y0, ekf.wrap_angle(th0), ekf.cov_diag(*c.initial_sigma), None)
         self._history = History(self._track, self._predictor, first, c.history_s, keep_past=self._latency)
         self._last_accept_t = -math.inf
-        # wheel ticks accumulated since the last step (fed one sample at a time)
-        self._tick_base: tuple[int, int, int, int] | None = None
-        self._tick_base_t = -math.inf
-        self._tick_last: tuple[int, int, int, int] | None = None
-        self._tick_last_t = -math.inf
-        # a whole log's wheel samples, loaded at once (load_wheels): as arrays, and their times, ticks and the samples
-        # that end each step as lists (read one at a time); how many samples were fed; the outputs marked
-        self._loaded: Loaded | None = None
-        self._loaded_lists: tuple[list[float], list[int], list[list[int]]] = ([], [], [])  # times, step ends, ticks
-        self._fed = 0
+        self._wheels = WheelFeed(self._kinematics, c.predict_period_s)
         self._spans: list[
             tuple[npt.NDArray[np.int64], Anchor, bool]
         ] = []  # mark_samples: samples, anchor, heading known
@@ -139,11 +107,7 @@ class Estimator:
         # the state at the newest step: (newest anchor, visible steps, state, whether the state is at that step)
         self._newest: tuple[Anchor, int, State, bool] | None = None
         self._aligner = HeadingAligner(c.heading_align_m, self._offset, enabled=c.heading_align_m > 0.0 and not paper)
-        # Whether a window's fit has agreed with the filter's heading since start-up (or since the robot was carried):
-        # until then the heading is unknown and one disagreeing window re-aligns it; after it, a window that
-        # disagrees is only a suspect (an echo or a slip can bend one window), confirmed by the next window.
-        self._heading_confirmed = False
-        self._suspect: tuple[int, float, float] | None = None  # (window, signed disagreement, its sigma)
+        self._heading_check = HeadingCheck()
         self.counters: dict[str, int] = dict.fromkeys(
             (
                 "wheels",
@@ -173,40 +137,32 @@ class Estimator:
 
     def on_wheels(self, t: float, ticks: tuple[int, int, int, int]) -> None:
         """Cumulative encoder counts (FL FR RL RR) at time t."""
-        if self._loaded is not None:
+        wheels = self._wheels
+        if wheels.loaded is not None:
             raise RuntimeError("wheel samples were loaded with load_wheels: feed them with on_wheel_samples")
-        if not math.isfinite(t) or t <= self._tick_last_t:
+        if not wheels.accepts(t):
             self.counters["dropped_out_of_order" if math.isfinite(t) else "dropped_non_finite"] += 1
             return
         self.counters["wheels"] += 1
-        if self._tick_base is None:
-            self._tick_base, self._tick_base_t = ticks, t
-            self._tick_last, self._tick_last_t = ticks, t
-            self._step_to(t, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-            return
-        self._tick_last, self._tick_last_t = ticks, t
-        if t - self._tick_base_t >= self.config.predict_period_s:
-            self._flush_ticks()
+        step = wheels.sample(t, ticks)
+        if step is not None:
+            self._step_to(step[0], step[1], step[1])
 
     def load_wheels(self, times: npt.NDArray[np.float64], ticks: npt.NDArray[np.int64]) -> bool:
         """Take a whole log's wheel samples at once (times strictly increasing and finite, ticks n x 4), to be fed
         in order with on_wheel_samples; the steps are those of feeding them one by one. False (nothing taken) when
         inputs were already given or the times are not clean. Twist samples cannot be mixed in afterwards."""
-        if self._loaded is not None or self._tick_base is not None or len(self._track) or len(times) < 2:
+        if len(self._track):
             return False
-        if not (np.all(np.isfinite(times)) and np.all(np.diff(times) > 0.0)):
+        steps = self._wheels.load(times, ticks)
+        if steps is None:
             return False
-        times_list: list[float] = times.tolist()
-        ends = step_ends(times_list, self.config.predict_period_s)
-        end, begin = np.array(ends[1:], dtype=np.int64), np.array(ends[:-1], dtype=np.int64)
-        vx, vy, wz = self._kinematics.twists(ticks[end] - ticks[begin], times[end] - times[begin])
-        self._track.start(times_list[0], (0.0, 0.0, 0.0))
-        self._track.extend(StepTwists(times[end], vx, vy, wz, (vx, vy, wz)))
+        t0 = float(times[0])
+        self._track.start(t0, (0.0, 0.0, 0.0))
+        self._track.extend(steps)
         if self._history.start == -math.inf:
-            self._set_clock(times_list[0])
+            self._set_clock(t0)
         self._history.visible = 0
-        self._loaded = Loaded(times, ticks, np.array(ends, dtype=np.int64))
-        self._loaded_lists = (times_list, ends, [column.tolist() for column in ticks.T])
         return True
 
     def on_wheel_samples(
@@ -216,19 +172,16 @@ class Estimator:
 
         After load_wheels, the samples are those loaded, fed in order: their steps are revealed, nothing computed.
         """
-        if self._loaded is None:
+        if self._wheels.loaded is None:
             for i in range(start, stop):
                 self.on_wheels(times[i], ticks[i])
             return
-        if start != self._fed:
-            raise ValueError(f"loaded wheel samples must be fed in order: expected {self._fed}, got {start}")
-        self._fed = stop
+        self._history.visible = self._wheels.feed(start, stop)
         self.counters["wheels"] += stop - start
-        self._history.visible = bisect.bisect_left(self._loaded_lists[1], stop)
 
     def on_twist(self, t: float, vx: float, vy: float, wz: float) -> None:
         """A measured body twist (m/s, rad/s) at time t, held until the next one."""
-        if self._loaded is not None:
+        if self._wheels.loaded is not None:
             raise RuntimeError("wheel samples were loaded with load_wheels: no twist samples can be added")
         if not (math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(wz)):
             self.counters["dropped_non_finite"] += 1
@@ -244,21 +197,6 @@ class Estimator:
     def on_fix_lost(self, t: float) -> None:  # noqa: ARG002 - the daemon's interface carries the time
         """A position packet flagged "coordinates unavailable": never fused, only counted."""
         self.counters["fixes_lost"] += 1
-
-    def _flush_ticks(self) -> None:
-        """Integrate the ticks accumulated since the last step as one step at their mean twist."""
-        u = self._tick_twist()
-        if u is None:
-            return
-        self._tick_base, self._tick_base_t = self._tick_last, self._tick_last_t
-        self._step_to(self._tick_last_t, u, u)
-
-    def _tick_twist(self) -> Twist3 | None:
-        """The mean twist of the ticks accumulated since the last step (None when there are none)."""
-        base, last = self._tick_base, self._tick_last
-        if base is None or last is None or self._tick_last_t <= self._tick_base_t:
-            return None
-        return self._kinematics.twist(base, last, self._tick_last_t - self._tick_base_t)
 
     def _set_clock(self, t: float) -> None:
         """The first input or fix sets the clock: the initial state is at t."""
@@ -290,47 +228,12 @@ class Estimator:
     def _pending(self) -> Twist3:
         """The twist beyond the newest step: that of the samples fed since (their mean), or the one in force."""
         track, vis = self._track, self._history.visible
-        if self._loaded is not None:
-            times, ends, (c1, c2, c3, c4) = self._loaded_lists
-            last = self._fed - 1
-            if vis and last > ends[vis - 1]:
-                e = ends[vis - 1]
-                return self._kinematics.twist(
-                    (c1[e], c2[e], c3[e], c4[e]), (c1[last], c2[last], c3[last], c4[last]), times[last] - times[e]
-                )
-        else:
-            u = self._tick_twist()
-            if u is not None:
-                return u
+        u = self._wheels.pending(vis)
+        if u is not None:
+            return u
         if not vis:
             return (0.0, 0.0, 0.0)
         return track.hx[vis - 1], track.hy[vis - 1], track.hw[vis - 1]
-
-    def _twist_at(self, t: float) -> Twist3:
-        """The twist in force at t: that of the visible step containing t, or the pending one beyond them."""
-        track, vis = self._track, self._history.visible
-        i = bisect.bisect_left(track.t, t, 0, vis)
-        if i < vis and i > 0:
-            return track.vx[i], track.vy[i], track.wz[i]
-        if i == 0 and vis:
-            return track.hx[0], track.hy[0], track.hw[0]
-        return self._pending()
-
-    def _odometry_at(self, t: float) -> tuple[float, float, float] | None:
-        """The odometry-only pose at t (linear between visible steps, the newest beyond); None before them."""
-        track, vis = self._track, self._history.visible
-        if not vis or t < track.t[0]:
-            return None
-        i = bisect.bisect_right(track.t, t, 0, vis)
-        if i >= vis:
-            return track.ox[vis - 1], track.oy[vis - 1], track.oth[vis - 1]
-        t0, t1 = track.t[i - 1], track.t[i]
-        f = (t - t0) / (t1 - t0)
-        return (
-            track.ox[i - 1] + f * (track.ox[i] - track.ox[i - 1]),
-            track.oy[i - 1] + f * (track.oy[i] - track.oy[i - 1]),
-            track.oth[i - 1] + f * (track.oth[i] - track.oth[i - 1]),
-        )
 
     # --- fixes ------------------------------------------------------------------------------------
 
@@ -368,7 +271,7 @@ class Estimator:
         if aligner.enabled and gate.seeded:
             if aligner.start_t == math.inf:
                 self._restart_window()  # the first window starts with the first seeded fix
-            aligner.record(x, y, t_meas, self._odometry_at(t_meas))
+            aligner.record(x, y, t_meas, self._track.pose_at(t_meas, history.visible))
         if verdict is Verdict.ACCEPTED:
             anchor = self._fuse(prior, t_meas, (x, y, r), inn)
         elif verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
@@ -378,7 +281,7 @@ class Estimator:
         history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
-        if len(anchors) > TRIM_ANCHORS and self._loaded is not None:
+        if len(anchors) > TRIM_ANCHORS and self._wheels.loaded is not None:
             history.trim(newest_step, self._pending)  # (fed one by one, the steps trim the anchors: _step_to)
         if aligner.enabled and vis and self._track.dist[vis - 1] >= aligner.next_fit:
             self._maybe_realign()
@@ -408,7 +311,7 @@ class Estimator:
         elif not self._predictor.heading_known:
             freeze = True
         else:
-            u = self._twist_at(t)
+            u = self._track.twist_at(t, self._history.visible) or self._pending()
             freeze = math.hypot(u[0], u[1]) < self.config.heading_min_speed_mps
         x, y, th, p = ekf.update(prior[0], prior[1], prior[2], prior[3], inn, z[2], freeze_heading=freeze)
         return Anchor(t, x, y, th, p, FixRecord(z[0], z[1], z[2], fused=True))
@@ -417,7 +320,7 @@ class Estimator:
         """Move the beacon onto the agreeing fixes (their median innovation), forgetting the position's past."""
         if verdict is Verdict.RECOVERED:
             self._restart_window()  # carried robots may have been turned too: check the heading again
-            self._heading_confirmed = False
+            self._heading_check.forget()
             self._predictor.heading_known = False
         dx, dy = self._fix_gate.seed_shift(verdict)
         zx, zy, r = z
@@ -426,58 +329,26 @@ class Estimator:
 
     # --- heading alignment --------------------------------------------------------------------------
 
-    def _newest_odometry(self) -> tuple[float, tuple[float, float, float], float]:
-        """Time, odometry pose and distance travelled at the newest visible step."""
-        track, vis = self._track, self._history.visible
-        if not vis:
-            return self._history.start, (0.0, 0.0, 0.0), 0.0
-        k = vis - 1
-        return track.t[k], (track.ox[k], track.oy[k], track.oth[k]), track.dist[k]
-
     def _restart_window(self) -> None:
-        t, pose, dist = self._newest_odometry()
+        t, pose, dist = self._track.newest(self._history.visible, self._history.start)
         self._aligner.restart(t, pose, dist)
 
     def _maybe_realign(self) -> None:
         """Take the heading of the aligner's rotation fit when the filter's heading disagrees with it."""
-        aligner = self._aligner
-        now_t, now_pose, dist = self._newest_odometry()
+        now_t, now_pose, dist = self._track.newest(self._history.visible, self._history.start)
         # an unknown heading is taken from a whole window: the longer the track, the better its direction
-        fit = aligner.check(self._fix_gate.r, now_t, now_pose, dist, whole=not self._predictor.heading_known)
+        known = self._predictor.heading_known
+        fit = self._aligner.check(self._fix_gate.r, now_t, now_pose, dist, whole=not known)
         if fit is None:
             return
         _, _, theta, p = self._state_at_newest_step()
-        # the filter's heading at the window's start is its current heading less the odometry turn since
-        ath = fit.window_odo[2]
-        filter_start = ekf.wrap_angle(theta - ath)
-        signed = ekf.wrap_angle(fit.rotation - filter_start)
-        sigma = fit.sigma
-        if sigma > 0.15:
-            return
-        if not self._predictor.heading_known:
-            self._realign(fit)  # the first trustworthy window gives the heading that was unknown
-            return
-        if abs(signed) <= max(4.0 * math.sqrt(sigma * sigma + p[5]), MIN_REALIGN_RAD):
-            if abs(signed) <= 3.0 * math.sqrt(sigma * sigma + p[5]):
-                self._heading_confirmed = True
-                self._suspect = None
-            return
-        if self._heading_confirmed:
-            suspect, window = self._suspect, fit.window
-            if suspect is None or suspect[0] == window:
-                if suspect is None:
-                    self._suspect = (window, signed, sigma)
-                return
-            if abs(ekf.wrap_angle(signed - suspect[1])) > 3.0 * math.hypot(sigma, suspect[2]):
-                self._suspect = (window, signed, sigma)  # two windows that disagree with each other: neither is proof
-                return
-        self._realign(fit)
+        if self._heading_check.realign(fit, theta, p[5], heading_known=known):
+            self._realign(fit)
 
     def _realign(self, fit: RotationFit) -> None:
         """Restart the state from the window's fit: its heading, and the position its translation puts it at."""
         ax, ay, ath = fit.window_odo
         sigma = fit.sigma
-        self._suspect = None
         self._predictor.heading_known = True
         self.counters["heading_realigned"] += 1
         c, s = math.cos(fit.rotation), math.sin(fit.rotation)
@@ -533,7 +404,7 @@ class Estimator:
 
     def mark(self, t: float) -> None:
         """Take an output at t (that of position(t)), to be read with marked(); none before a fix placed the filter."""
-        if self._loaded is not None:
+        if self._wheels.loaded is not None:
             raise RuntimeError("after load_wheels outputs are marked at wheel samples: mark_samples")
         if self._fix_gate.state is TrackState.INITIALISING:
             return
@@ -543,7 +414,7 @@ class Estimator:
     def mark_samples(self, samples: npt.NDArray[np.int64]) -> None:
         """Take outputs at loaded wheel samples (indices, all fed already, none before an earlier mark, no fix since
         they were fed): each that of position(times[i]) right after sample i was fed. Computed by marked()."""
-        if self._loaded is None:
+        if self._wheels.loaded is None:
             raise RuntimeError("mark_samples needs wheel samples loaded with load_wheels")
         if self._fix_gate.state is TrackState.INITIALISING or not len(samples):
             return
@@ -551,7 +422,8 @@ class Estimator:
 
     def marked(self) -> tuple[list[float], list[float], list[float], list[float], npt.NDArray[np.float64]]:
         """The outputs marked so far, in order: times, x, y, theta, and P's upper triangles (n x 6)."""
-        if self._loaded is None:
+        loaded = self._wheels.loaded
+        if loaded is None:
             if not self._ready:
                 return [], [], [], [], np.zeros((0, 6))
             t, x, y, th, p = zip(*self._ready, strict=True)
@@ -559,7 +431,7 @@ class Estimator:
         if self._arrays is None:
             self._arrays = self._track.arrays()
         t_out, xs, ys, ths, ps = evaluate(
-            self._spans, self._arrays, self._loaded, self._kinematics, self._noise, midpoint=not self.paper
+            self._spans, self._arrays, loaded, self._kinematics, self._noise, midpoint=not self.paper
         )
         return t_out.tolist(), xs.tolist(), ys.tolist(), ths.tolist(), np.column_stack(ps)
 
@@ -570,8 +442,7 @@ class Estimator:
         x, y, th, p = self._state_at_newest_step()
         u = self._pending()
         if t is None:
-            fed_t = self._loaded_lists[0][self._fed - 1] if self._fed else when
-            t = max(when, self._tick_last_t, fed_t)
+            t = max(when, self._wheels.last_t)
         if t > when and math.isfinite(when):
             vx, vy, wz = u
             dt = t - when

@@ -13,6 +13,8 @@ from typing import NamedTuple
 
 LN4 = 2.0 * math.log(2.0)  # median of a chi-square with 2 dof: |nu|^2 / sigma^2 has this median
 MAX_POINTS = 400  # a robot standing still must not grow a window forever
+MIN_REALIGN_RAD = 0.35  # smaller heading errors are the EKF's own business: it corrects them from fixes in motion
+MAX_FIT_SIGMA_RAD = 0.15  # a fit less certain than this decides nothing
 FIT_SPACING = 0.25  # of the window's travel between two fits (at 40, 65, 90 and 100 %)
 
 
@@ -115,6 +117,59 @@ class HeadingAligner:
         return RotationFit(rotation, sigma, tx, ty, odo, window)
 
 
+class HeadingCheck:
+    """Whether a window's rotation fit replaces the filter's heading: the first trustworthy fit when the heading is
+    unknown; after that, only a large disagreement that two successive windows agree on.
+
+    Once a fit has agreed with the filter, a window that disagrees is a suspect (an echo or a slip can bend one
+    window), confirmed by the next window if that one disagrees the same way.
+    """
+
+    def __init__(self) -> None:
+        self.confirmed = False  # a window's fit agreed with the filter since start-up (or since a recovery)
+        self.suspect: tuple[int, float, float] | None = None  # (window, signed disagreement, its sigma)
+
+    def forget(self) -> None:
+        """The heading is in doubt again (the robot was carried): the next disagreeing window is taken at once."""
+        self.confirmed = False
+        self.suspect = None
+
+    def realign(self, fit: RotationFit, filter_theta: float, filter_var: float, *, heading_known: bool) -> bool:
+        """Whether to take the fit's heading; filter_theta and filter_var are the filter's heading and its variance
+        now (at the fit's window_odo)."""
+        # the filter's heading at the window's start is its current heading less the odometry turn since
+        filter_start = wrap(filter_theta - fit.window_odo[2])
+        signed = wrap(fit.rotation - filter_start)
+        sigma = fit.sigma
+        if sigma > MAX_FIT_SIGMA_RAD:
+            return False
+        if not heading_known:
+            self.suspect = None
+            return True  # the first trustworthy window gives the heading that was unknown
+        spread = math.sqrt(sigma * sigma + filter_var)
+        if abs(signed) <= max(4.0 * spread, MIN_REALIGN_RAD):
+            if abs(signed) <= 3.0 * spread:
+                self.confirmed = True
+                self.suspect = None
+            return False
+        if self.confirmed:
+            suspect, window = self.suspect, fit.window
+            if suspect is None or suspect[0] == window:
+                if suspect is None:
+                    self.suspect = (window, signed, sigma)
+                return False
+            if abs(wrap(signed - suspect[1])) > 3.0 * math.hypot(sigma, suspect[2]):
+                self.suspect = (window, signed, sigma)  # two windows that disagree with each other: neither is proof
+                return False
+        self.suspect = None
+        return True
+
+
+def wrap(angle: float) -> float:
+    """The same angle in [-pi, pi)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def fit_rotation(
     oxs: list[float], oys: list[float], zxs: list[float], zys: list[float], tolerance: float
 ) -> tuple[float, float, float, float] | None:
@@ -161,4 +216,4 @@ def fit_rotation(
     return rotation, sigma, tx, ty
 
 
-__all__ = ["LN4", "HeadingAligner", "RotationFit", "fit_rotation"]
+__all__ = ["LN4", "HeadingAligner", "HeadingCheck", "RotationFit", "fit_rotation", "wrap"]

@@ -23,6 +23,7 @@ with numpy, one call for any number of steps, so that one step and a whole log's
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 from types import ModuleType
@@ -239,6 +240,39 @@ class OdometryTrack:
         del self.sums[:cut]
         self._chunks = []
         self.first = step
+
+    def twist_at(self, t: float, visible: int) -> tuple[float, float, float] | None:
+        """The twist in force at t among the first `visible` steps (that of the step containing it); None past them."""
+        i = bisect.bisect_left(self.t, t, 0, visible)
+        if i >= visible:
+            return None
+        if i == 0:
+            return self.hx[0], self.hy[0], self.hw[0]
+        return self.vx[i], self.vy[i], self.wz[i]
+
+    def pose_at(self, t: float, visible: int) -> tuple[float, float, float] | None:
+        """The odometry pose at t (linear between the first `visible` steps, the newest past them); None before."""
+        if not visible or t < self.t[0]:
+            return None
+        i = bisect.bisect_right(self.t, t, 0, visible)
+        ox, oy, oth = self.ox, self.oy, self.oth
+        if i >= visible:
+            return ox[visible - 1], oy[visible - 1], oth[visible - 1]
+        t0, t1 = self.t[i - 1], self.t[i]
+        f = (t - t0) / (t1 - t0)
+        return (
+            ox[i - 1] + f * (ox[i] - ox[i - 1]),
+            oy[i - 1] + f * (oy[i] - oy[i - 1]),
+            oth[i - 1] + f * (oth[i] - oth[i - 1]),
+        )
+
+    def newest(self, visible: int, clock: float) -> tuple[float, tuple[float, float, float], float]:
+        """Time, odometry pose and distance travelled at the newest of `visible` steps (the clock's start, at rest,
+        before any)."""
+        if not visible:
+            return clock, (0.0, 0.0, 0.0), 0.0
+        k = visible - 1
+        return self.t[k], (self.ox[k], self.oy[k], self.oth[k]), self.dist[k]
 
     def across(self, b: int, j: int, state: State, *, heading_known: bool) -> State:
         """The state at step j (list index) from the state at step b <= j, in O(1) (see the module docstring).

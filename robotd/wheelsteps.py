@@ -6,15 +6,26 @@ kinematics (paper eq. 1). The same arithmetic serves one step (floats) and a who
 
 from __future__ import annotations
 
+import bisect
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
 from robotd import kinematics
+from robotd.track import StepTwists
 
 Ticks = tuple[int, int, int, int]
+FloatArray = npt.NDArray[np.float64]
+
+
+class Loaded(NamedTuple):
+    """A log's wheel samples as loaded by the estimator: times, cumulative ticks (n x 4), the samples ending steps."""
+
+    times: FloatArray
+    ticks: npt.NDArray[np.int64]
+    ends: npt.NDArray[np.int64]
 
 
 def step_ends(times: list[float], period: float) -> list[int]:
@@ -62,4 +73,90 @@ class TickKinematics:
         return self._r4 * (w1 + w2 + w3 + w4), self._r4 * (-w1 + w2 + w3 - w4), self._r4k * (-w1 + w2 - w3 + w4)
 
 
-__all__ = ["TickKinematics", "Ticks", "step_ends"]
+class WheelFeed:
+    """Cumulative tick samples into prediction steps: fed one at a time, or a whole log's loaded at once.
+
+    One at a time, ticks accumulate until `period` has passed since the sample that ended the last step; the step's
+    twist is their mean. Loaded, the same steps are found in one pass (step_ends) with their twists in numpy, and
+    feeding only says how many samples have arrived. Either way, the twist beyond the newest step is the mean of the
+    samples since it (pending).
+    """
+
+    def __init__(self, kinematics: TickKinematics, period: float) -> None:
+        self.kinematics = kinematics
+        self.period = period
+        self.base: Ticks | None = None  # the sample that ended the last step, and the newest sample
+        self.base_t = -math.inf
+        self.last: Ticks | None = None
+        self.last_t = -math.inf
+        # loaded: the arrays, and as lists the times, the samples that end each step and each wheel's ticks
+        self.loaded: Loaded | None = None
+        self._times: list[float] = []
+        self._ends: list[int] = []
+        self._columns: list[list[int]] = []
+        self.fed = 0  # loaded samples fed so far
+
+    def accepts(self, t: float) -> bool:
+        """Whether a sample at t would be taken (finite, and later than the newest)."""
+        return math.isfinite(t) and t > self.last_t
+
+    def sample(self, t: float, ticks: Ticks) -> tuple[float, tuple[float, float, float]] | None:
+        """Take a sample (accepts(t) must hold); returns the step it ends, (t, twist), if it ends one.
+
+        The first sample ends the zero-length step that starts the clock, at rest.
+        """
+        self.last, self.last_t = ticks, t
+        if self.base is None:
+            self.base, self.base_t = ticks, t
+            return t, (0.0, 0.0, 0.0)
+        if t - self.base_t < self.period:
+            return None
+        twist = self.kinematics.twist(self.base, ticks, t - self.base_t)
+        self.base, self.base_t = ticks, t
+        return t, twist
+
+    def load(self, times: npt.NDArray[np.float64], ticks: npt.NDArray[np.int64]) -> StepTwists | None:
+        """Take a whole log's samples (times strictly increasing and finite, ticks n x 4, at least two): the steps
+        feeding them one by one would make, after the first sample's clock start; None (nothing taken) otherwise."""
+        if self.loaded is not None or self.base is not None or len(times) < 2:
+            return None
+        if not (np.all(np.isfinite(times)) and np.all(np.diff(times) > 0.0)):
+            return None
+        self._times = times.tolist()
+        self._ends = step_ends(self._times, self.period)
+        self._columns = [column.tolist() for column in ticks.T]
+        self.loaded = Loaded(times, ticks, np.array(self._ends, dtype=np.int64))
+        end, begin = self.loaded.ends[1:], self.loaded.ends[:-1]
+        vx, vy, wz = self.kinematics.twists(ticks[end] - ticks[begin], times[end] - times[begin])
+        return StepTwists(times[end], vx, vy, wz, (vx, vy, wz))
+
+    def feed(self, start: int, stop: int) -> int:
+        """Loaded samples [start, stop) have arrived (in order); returns how many steps they complete (with the
+        clock's)."""
+        if start != self.fed:
+            raise ValueError(f"loaded wheel samples must be fed in order: expected {self.fed}, got {start}")
+        self.fed = stop
+        if stop:
+            self.last_t = self._times[stop - 1]
+        return bisect.bisect_left(self._ends, stop)
+
+    def pending(self, steps: int) -> tuple[float, float, float] | None:
+        """The mean twist of the samples since the newest of `steps` steps (None when there are none)."""
+        if self.loaded is None:
+            base, last = self.base, self.last
+            if base is None or last is None or self.last_t <= self.base_t:
+                return None
+            return self.kinematics.twist(base, last, self.last_t - self.base_t)
+        newest = self.fed - 1
+        if not steps or newest <= self._ends[steps - 1]:
+            return None
+        e = self._ends[steps - 1]
+        c1, c2, c3, c4 = self._columns
+        return self.kinematics.twist(
+            (c1[e], c2[e], c3[e], c4[e]),
+            (c1[newest], c2[newest], c3[newest], c4[newest]),
+            self._times[newest] - self._times[e],
+        )
+
+
+__all__ = ["Loaded", "TickKinematics", "Ticks", "WheelFeed", "step_ends"]
