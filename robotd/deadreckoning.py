@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from robotd import kinematics
+from robotd.wheelsteps import TickKinematics, step_ends
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -24,29 +25,6 @@ IntArray = npt.NDArray[np.int64]
 def applies(t: FloatArray) -> bool:
     """Whether wheel sample times are all finite and strictly increasing (no sample would be dropped)."""
     return bool(np.all(np.isfinite(t)) and np.all(np.diff(t) > 0.0))
-
-
-def step_ends(t: list[float], period: float) -> list[int]:
-    """Indices of the samples that end a prediction step: the first sample at least `period` after the last end."""
-    ends: list[int] = []
-    if not t:
-        return ends
-    base = t[0]
-    for i, ti in enumerate(t):
-        if ti - base >= period and i > 0:
-            ends.append(i)
-            base = ti
-    return ends
-
-
-def _twists(
-    geometry: kinematics.Geometry, counts_per_rev: int, dticks: IntArray, dt: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Mean body twists (eq. 1) of tick increments over dt, in the Estimator's order of operations."""
-    k = 2.0 * math.pi / counts_per_rev / dt
-    w1, w2, w3, w4 = (dticks[:, j] * k for j in range(4))
-    r, half = geometry.wheel_radius_m, geometry.lx_m + geometry.ly_m
-    return r / 4.0 * (w1 + w2 + w3 + w4), r / 4.0 * (-w1 + w2 + w3 - w4), r / (4.0 * half) * (-w1 + w2 - w3 + w4)
 
 
 def wrap(angle: FloatArray) -> FloatArray:
@@ -68,10 +46,11 @@ def poses_at(  # noqa: PLR0917 - the log's columns and the robot
     Equal to Estimator.pose(record_t) of an Estimator started at the origin and fed those samples with on_wheels.
     """
     n = len(t)
-    ends = np.array(step_ends(t.tolist(), period), dtype=np.int64)
+    ends = np.array(step_ends(t.tolist(), period)[1:], dtype=np.int64)
     starts = np.concatenate(([0], ends[:-1])).astype(np.int64) if len(ends) else np.zeros(0, dtype=np.int64)
     dt = t[ends] - t[starts]
-    vx, vy, wz = _twists(geometry, counts_per_rev, ticks[ends] - ticks[starts], dt)
+    kinematics = TickKinematics(geometry, counts_per_rev)
+    vx, vy, wz = kinematics.twists(ticks[ends] - ticks[starts], dt)
     # entry 0 is the clock set by the first sample, at rest; entry m the state after the m-th step
     dth = wz * dt
     theta = np.concatenate(([0.0], np.cumsum(dth)))
@@ -91,7 +70,7 @@ def poses_at(  # noqa: PLR0917 - the log's columns and the robot
     pending = newest_c > base
     pdt = np.where(pending, t[newest_c] - t[base], 1.0) if n else np.ones(len(newest))
     if n:
-        pvx, pvy, pwz = _twists(geometry, counts_per_rev, ticks[newest_c] - ticks[base], pdt)
+        pvx, pvy, pwz = kinematics.twists(ticks[newest_c] - ticks[base], pdt)
     else:
         pvx = pvy = pwz = np.zeros(len(newest))
     ux = np.where(pending, pvx, entry_u[0][m])
@@ -111,4 +90,4 @@ def poses_at(  # noqa: PLR0917 - the log's columns and the robot
     return out_x, out_y, out_th
 
 
-__all__ = ["applies", "poses_at", "step_ends", "wrap"]
+__all__ = ["applies", "poses_at", "wrap"]

@@ -148,13 +148,18 @@ class Estimator:
         if step is not None:
             self._step_to(step[0], step[1], step[1])
 
-    def load_wheels(self, times: npt.NDArray[np.float64], ticks: npt.NDArray[np.int64]) -> bool:
+    def load_wheels(
+        self, times: npt.NDArray[np.float64], ticks: npt.NDArray[np.int64], ends: list[int] | None = None
+    ) -> bool:
         """Take a whole log's wheel samples at once (times strictly increasing and finite, ticks n x 4), to be fed
         in order with on_wheel_samples; the steps are those of feeding them one by one. False (nothing taken) when
-        inputs were already given or the times are not clean. Twist samples cannot be mixed in afterwards."""
+        inputs were already given or the times are not clean. Twist samples cannot be mixed in afterwards.
+
+        `ends`, if given, is wheelsteps.step_ends(times, predict_period_s), already computed by the caller.
+        """
         if len(self._track):
             return False
-        steps = self._wheels.load(times, ticks)
+        steps = self._wheels.load(times, ticks, ends)
         if steps is None:
             return False
         t0 = float(times[0])

@@ -157,8 +157,10 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     has_twists = any(type(e) is TwistSample for e in others)
     # a clean wheel column makes all its prediction steps at once (numpy), and outputs are computed together
     loaded = False
-    if not has_twists and odometry is None:
-        outcomes = [est.load_wheels(columns.wheels_t, columns.wheels_ticks) for est in filters]
+    step_period = config.ekf.predict_period_s
+    ends = step_ends(times, step_period) if not has_twists and odometry is None else []
+    if ends:
+        outcomes = [est.load_wheels(columns.wheels_t, columns.wheels_ticks, ends) for est in filters]
         loaded = all(outcomes)  # (the same columns: all or none)
     odometry_track = Track()
     odo_records: tuple[list[float], list[int]] = ([], [])  # record times and wheel samples before them
@@ -184,7 +186,7 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
 
     if loaded:
         # outputs at the wheel samples that end each OUTPUT_PERIOD_S, marked in runs between the other events
-        marks = step_ends(times, OUTPUT_PERIOD_S)
+        marks = ends if step_period == OUTPUT_PERIOD_S else step_ends(times, OUTPUT_PERIOD_S)
         mark_array = np.array(marks, dtype=np.int64)
         fed = marked = 0
         for index in range(len(others) + 1):

@@ -34,6 +34,7 @@ import numpy.typing as npt
 
 from robotd import ekf
 
+BULK_STEPS = 1000  # an extend of this many steps or more keeps its totals as an array
 UNKNOWN_HEADING_CORRELATION_S = 1.0  # how long a velocity error from an unknown heading is taken to persist
 
 FloatArray = npt.NDArray[np.float64]
@@ -95,7 +96,8 @@ class OdometryTrack:
         self.oy: list[float] = []
         self.oth: list[float] = []  # unwrapped
         self.dist: list[float] = []  # distance travelled since the track began
-        self.sums: list[list[float]] = []  # per step, the running totals of SUMS in that order
+        # per step, the running totals of SUMS in that order (an array when a whole log's steps came at once)
+        self.sums: list[list[float]] | FloatArray = []
         self._chunks: list[TrackArrays] = []  # the same columns as arrays, one entry per start or extend
 
     def __len__(self) -> int:
@@ -114,8 +116,7 @@ class OdometryTrack:
         self.hy.append(held[1])
         self.hw.append(held[2])
         self.dist.append(0.0)
-        self.sums.clear()
-        self.sums.append([0.0] * len(SUMS))
+        self.sums = [[0.0] * len(SUMS)]
         zero, one = np.zeros(1), np.ones(1)
         self._chunks = [
             TrackArrays(
@@ -210,7 +211,13 @@ class OdometryTrack:
         for column, name in enumerate(SUMS):
             table[1:, column] = terms[name]
         totals_after = np.cumsum(table, axis=0)[1:]
-        self.sums.extend(totals_after.tolist())
+        if n >= BULK_STEPS and len(self.sums) == 1:
+            # a whole log's steps: the totals stay an array (read only for long runs of steps: across)
+            self.sums = np.concatenate((np.array(self.sums), totals_after))
+        else:
+            listed: list[list[float]] = self.sums.tolist() if isinstance(self.sums, np.ndarray) else self.sums
+            listed.extend(totals_after.tolist())
+            self.sums = listed
         oth_after = oth[1:]
         self._chunks.append(
             TrackArrays(
@@ -237,7 +244,7 @@ class OdometryTrack:
         for column in (self.t, self.vx, self.vy, self.wz, self.hx, self.hy, self.hw, self.ox, self.oy, self.oth):
             del column[:cut]
         del self.dist[:cut]
-        del self.sums[:cut]
+        self.sums = self.sums[cut:]
         self._chunks = []
         self.first = step
 
@@ -287,12 +294,19 @@ class OdometryTrack:
             oth[b],
             (ox[j] - ox[b], oy[j] - oy[b], oth[j] - oth[b]),
             (-oy[j], ox[j]),
-            self.sums[b],
-            self.sums[j],
+            *self._totals(b, j),
             heading_known=heading_known,
             lib=math,
         )
         return carried
+
+    def _totals(self, b: int, j: int) -> tuple[list[float], list[float]]:
+        """The running totals at steps b and j, as floats (an array's elements would make the arithmetic numpy's)."""
+        sums = self.sums
+        if isinstance(sums, np.ndarray):
+            both: list[list[float]] = sums[[b, j]].tolist()
+            return both[0], both[1]
+        return sums[b], sums[j]
 
     def arrays(self) -> TrackArrays:
         """The columns as arrays, for evaluating many states at once (a track that was never trimmed)."""

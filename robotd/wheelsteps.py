@@ -93,7 +93,6 @@ class WheelFeed:
         self.loaded: Loaded | None = None
         self._times: list[float] = []
         self._ends: list[int] = []
-        self._columns: list[list[int]] = []
         self.fed = 0  # loaded samples fed so far
 
     def accepts(self, t: float) -> bool:
@@ -115,16 +114,20 @@ class WheelFeed:
         self.base, self.base_t = ticks, t
         return t, twist
 
-    def load(self, times: npt.NDArray[np.float64], ticks: npt.NDArray[np.int64]) -> StepTwists | None:
+    def load(
+        self, times: npt.NDArray[np.float64], ticks: npt.NDArray[np.int64], ends: list[int] | None = None
+    ) -> StepTwists | None:
         """Take a whole log's samples (times strictly increasing and finite, ticks n x 4, at least two): the steps
-        feeding them one by one would make, after the first sample's clock start; None (nothing taken) otherwise."""
+        feeding them one by one would make, after the first sample's clock start; None (nothing taken) otherwise.
+
+        `ends`, if given, is step_ends(times, period), already computed by the caller.
+        """
         if self.loaded is not None or self.base is not None or len(times) < 2:
             return None
         if not (np.all(np.isfinite(times)) and np.all(np.diff(times) > 0.0)):
             return None
         self._times = times.tolist()
-        self._ends = step_ends(self._times, self.period)
-        self._columns = [column.tolist() for column in ticks.T]
+        self._ends = ends if ends is not None else step_ends(self._times, self.period)
         self.loaded = Loaded(times, ticks, np.array(self._ends, dtype=np.int64))
         end, begin = self.loaded.ends[1:], self.loaded.ends[:-1]
         vx, vy, wz = self.kinematics.twists(ticks[end] - ticks[begin], times[end] - times[begin])
@@ -151,12 +154,8 @@ class WheelFeed:
         if not steps or newest <= self._ends[steps - 1]:
             return None
         e = self._ends[steps - 1]
-        c1, c2, c3, c4 = self._columns
-        return self.kinematics.twist(
-            (c1[e], c2[e], c3[e], c4[e]),
-            (c1[newest], c2[newest], c3[newest], c4[newest]),
-            self._times[newest] - self._times[e],
-        )
+        (a1, a2, a3, a4), (b1, b2, b3, b4) = self.loaded.ticks[[e, newest]].tolist()
+        return self.kinematics.twist((a1, a2, a3, a4), (b1, b2, b3, b4), self._times[newest] - self._times[e])
 
 
 __all__ = ["Loaded", "TickKinematics", "Ticks", "WheelFeed", "step_ends"]
