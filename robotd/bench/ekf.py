@@ -127,7 +127,7 @@ def run(quick: bool) -> dict[str, float]:
         f"predict+update: robotd {per_ours:.1f} us, FilterPy {per_theirs:.1f} us, "
         f"ratio {ours / theirs:.3f} (target <= 0.333)"
     )
-    loops, runs = (2, 1) if quick else (86, 2)
+    loops, runs = (2, 1) if quick else (86, 3)
     figures: dict[str, float] = {
         "robotd_step_us": per_ours,
         "filterpy_step_us": per_theirs,
