@@ -18,7 +18,7 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 from robotd import ekf
-from robotd.track import UNKNOWN_HEADING_CORRELATION_S, OdometryTrack, State
+from robotd.track import OdometryTrack, State, unknown_heading_variance
 
 Twist3 = tuple[float, float, float]
 SHORT_RUN = 3  # runs of up to this many whole steps are taken one by one (cheaper than the closed form)
@@ -60,11 +60,10 @@ class Anchor(NamedTuple):
 def widen_for_unknown_heading(p: Any, vx: Any, vy: Any, dt: Any) -> Any:
     """P after a step of (vx, vy) for dt with the heading unknown: floats, or arrays of many steps.
 
-    The guessed direction may be off by anything: a velocity error of up to twice the speed, correlated over
-    UNKNOWN_HEADING_CORRELATION_S (white noise of that density: no state to carry through re-predictions); the
-    position keeps no correlation with the heading.
+    The guessed direction may be off by anything (track.unknown_heading_variance); the position keeps no
+    correlation with the heading.
     """
-    q = 4.0 * (vx * vx + vy * vy) * dt * UNKNOWN_HEADING_CORRELATION_S
+    q = unknown_heading_variance(vx, vy, dt)
     xx, xy, xt, yy, yt, tt = p
     return xx + q, xy, 0.0 * xt, yy + q, 0.0 * yt, tt
 

@@ -35,7 +35,7 @@ import numpy.typing as npt
 from robotd import ekf
 
 BULK_STEPS = 1000  # an extend of this many steps or more keeps its totals as an array
-UNKNOWN_HEADING_CORRELATION_S = 1.0  # how long a velocity error from an unknown heading is taken to persist
+UNKNOWN_HEADING_CORRELATION_S = 0.1  # how long a velocity error from an unknown heading persists: a fix interval
 
 FloatArray = npt.NDArray[np.float64]
 State = tuple[float, float, float, ekf.Cov]
@@ -204,7 +204,7 @@ class OdometryTrack:
             "a2c": a * a * before,
             "abc": a * b * before,
             "b2c": b * b * before,
-            "qiso": 4.0 * speed * speed * dt * UNKNOWN_HEADING_CORRELATION_S,
+            "qiso": unknown_heading_variance(vx, vy, dt),
         }
         table = np.empty((n + 1, len(SUMS)))
         table[0] = totals
@@ -339,6 +339,13 @@ class TrackArrays:
     sums: FloatArray
 
 
+def unknown_heading_variance(vx: Any, vy: Any, dt: Any) -> Any:
+    """The position variance (per axis) a step of (vx, vy) for dt adds when the heading is unknown: a velocity
+    error of up to twice the speed, correlated over UNKNOWN_HEADING_CORRELATION_S, about one fix interval (each fix
+    re-anchors the position, so only the motion since the last one is in doubt), as white noise of that density."""
+    return 4.0 * (vx * vx + vy * vy) * dt * UNKNOWN_HEADING_CORRELATION_S
+
+
 def carry(  # noqa: PLR0917 - the closed form's inputs, as plain floats (or arrays of them)
     state: Any,
     oth_b: Any,
@@ -401,4 +408,13 @@ def carry(  # noqa: PLR0917 - the closed form's inputs, as plain floats (or arra
     return x_new, y_new, th_new, p_new
 
 
-__all__ = ["SUMS", "UNKNOWN_HEADING_CORRELATION_S", "OdometryTrack", "State", "StepTwists", "TrackArrays", "carry"]
+__all__ = [
+    "SUMS",
+    "UNKNOWN_HEADING_CORRELATION_S",
+    "OdometryTrack",
+    "State",
+    "StepTwists",
+    "TrackArrays",
+    "carry",
+    "unknown_heading_variance",
+]
