@@ -10,6 +10,7 @@ parallel experiment equals a serial one. A real-data run (the libRSF Labyrinth U
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import multiprocessing
 import statistics
@@ -22,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from robotd import librsf, plots
-from robotd.config import RobotdConfig
+from robotd.config import EkfConfig, RobotdConfig
 from robotd.logfile import Event, LogWriter, Meta, SensorLog, Truth, parse_lines
 from robotd.metrics import ErrorStats, TruthTrack
 from robotd.replay import METHODS, ReplayResult, replay
@@ -222,7 +223,13 @@ def summarise(runs: Sequence[Run]) -> dict[str, dict[str, Spread]]:
 
 
 def real_data_run(folder: Path, config: RobotdConfig, keep_figures: bool) -> tuple[Run | None, str]:
-    """The libRSF Labyrinth UWB run scored like a seed, or None and why it was skipped."""
+    """The libRSF Labyrinth UWB run scored like a seed, or None and why it was skipped.
+
+    A different robot, put down at an unknown heading: it is replayed with the default configuration of the filters
+    (config/robot.yaml's: the heading learnt by driving), whatever the virtual robot's says; its log gives the
+    geometry.
+    """
+    config = dataclasses.replace(config, ekf=EkfConfig())
     if not folder.is_dir():
         return None, f"dataset folder {folder} not found: real-data row skipped"
     try:

@@ -107,8 +107,9 @@ def _real_data(exp: Experiment) -> list[str]:
     lines += [
         (
             f"One real run ({exp.real.duration_s:.1f} s) of a small differential-drive robot in a labyrinth: wheel "
-            "speeds, fixes multilaterated from real UWB ranges, 2D ground truth without heading. Same filters and "
-            "configuration; the paper's maxima do not apply to this data."
+            "speeds, fixes multilaterated from real UWB ranges, 2D ground truth without heading. Same filters, with "
+            "the default configuration (the robot's heading at start is not known: robotd learns it by driving); "
+            "the paper's maxima do not apply to this data."
         ),
         "",
         (
