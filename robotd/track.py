@@ -139,24 +139,38 @@ class OdometryTrack:
         self.hx[-1], self.hy[-1], self.hw[-1] = held
 
     def append(self, t: float, u: tuple[float, float, float], held: tuple[float, float, float]) -> None:
-        """Add one step ending at t (after the newest) with twist u, and `held` in force after it."""
-        one = np.array([t])
-        self.extend(
-            StepTwists(
-                one,
-                np.array([u[0]]),
-                np.array([u[1]]),
-                np.array([u[2]]),
-                (np.array([held[0]]), np.array([held[1]]), np.array([held[2]])),
-            )
-        )
+        """Add one step ending at t (after the newest) with twist u, and `held` in force after it: extend's
+        arithmetic on floats (a daemon adds its steps one at a time; numpy's per-call cost would be most of it)."""
+        vx, vy, wz = u
+        dt = t - self.t[-1]
+        heading = self.oth[-1]
+        dx, dy, c, s = _motion(vx, vy, wz, dt, heading, midpoint=self.midpoint, lib=math)
+        ox, oy = self.ox[-1] + dx, self.oy[-1] + dy
+        qxx, qxy, qyy, qtt = _noise(vx, vy, wz, dt, c, s, self.noise, lib=math)
+        previous = self.sums[-1]
+        previous = previous.tolist() if isinstance(previous, np.ndarray) else previous
+        increments = _increments(qxx, qxy, qyy, qtt, (-dy, dx), (-oy, ox), previous[0], (vx, vy, dt))
+        listed: list[list[float]] = self.sums.tolist() if isinstance(self.sums, np.ndarray) else self.sums
+        listed.append([total + step for total, step in zip(previous, increments, strict=True)])
+        self.sums = listed
+        self._chunks = []  # the arrays are made again from the lists when asked for (arrays)
+        self.t.append(t)
+        self.vx.append(vx)
+        self.vy.append(vy)
+        self.wz.append(wz)
+        self.hx.append(held[0])
+        self.hy.append(held[1])
+        self.hw.append(held[2])
+        self.ox.append(ox)
+        self.oy.append(oy)
+        self.oth.append(heading + wz * dt)
+        self.dist.append(self.dist[-1] + math.hypot(vx, vy) * dt)
 
     def extend(self, steps: StepTwists) -> None:
         """Add steps (end times strictly increasing, after the newest step): the odometry pose and totals after each."""
         n = len(steps.t)
         if n == 0:
             return
-        noise = self.noise
         t_prev = np.empty(n)
         t_prev[0] = self.t[-1]
         t_prev[1:] = steps.t[:-1]
@@ -166,50 +180,17 @@ class OdometryTrack:
         turn[0] = self.oth[-1]
         turn[1:] = wz * dt
         oth = np.cumsum(turn)  # oth[k] is the heading before step k, oth[k + 1] after it
-        heading = oth[:-1] + 0.5 * wz * dt if self.midpoint else oth[:-1]
-        c, s = np.cos(heading), np.sin(heading)
-        dx = (vx * c - vy * s) * dt  # eq. 5
-        dy = (vx * s + vy * c) * dt
+        dx, dy, c, s = _motion(vx, vy, wz, dt, oth[:-1], midpoint=self.midpoint, lib=np)
         ox = np.cumsum(np.concatenate(([self.ox[-1]], dx)))[1:]
         oy = np.cumsum(np.concatenate(([self.oy[-1]], dy)))[1:]
-        speed = np.hypot(vx, vy)
-        inv_dt = 1.0 / dt
-        # Q = G M G^T (robotd.ekf.ControlNoise): the random-walk terms grow with distance and angle, not time
-        m_vx = noise.lin2 * speed * inv_dt + noise.rel2 * vx * vx + noise.const_v2
-        m_vy = noise.lat2 * speed * inv_dt + noise.rel2 * vy * vy + noise.const_v2
-        m_wz = (noise.slip2 * speed + noise.turn2 * np.abs(wz)) * inv_dt + noise.rel2 * wz * wz + noise.const_w2
-        dt2 = dt * dt
-        cc, ss = c * c, s * s
-        qxx = dt2 * (cc * m_vx + ss * m_vy)
-        qxy = dt2 * c * s * (m_vx - m_vy)
-        qyy = dt2 * (ss * m_vx + cc * m_vy)
-        qtt = dt2 * m_wz
-        wx, wy = -oy, ox  # perp(o_k)
-        a, b = -dy, dx  # eq. 6: the step's theta column
+        qxx, qxy, qyy, qtt = _noise(vx, vy, wz, dt, c, s, self.noise, lib=np)
         totals = np.array(self.sums[-1])
         before = totals[0] + np.concatenate(([0.0], np.cumsum(qtt)[:-1]))  # qtt total before each step
-        terms = {
-            "c": qtt,
-            "s1x": qtt * wx,
-            "s1y": qtt * wy,
-            "s2xx": qtt * wx * wx,
-            "s2xy": qtt * wx * wy,
-            "s2yy": qtt * wy * wy,
-            "qxx": qxx,
-            "qxy": qxy,
-            "qyy": qyy,
-            "a2": a * a,
-            "ab": a * b,
-            "b2": b * b,
-            "a2c": a * a * before,
-            "abc": a * b * before,
-            "b2c": b * b * before,
-            "qiso": unknown_heading_variance(vx, vy, dt),
-        }
+        increments = _increments(qxx, qxy, qyy, qtt, (-dy, dx), (-oy, ox), before, (vx, vy, dt))
         table = np.empty((n + 1, len(SUMS)))
         table[0] = totals
-        for column, name in enumerate(SUMS):
-            table[1:, column] = terms[name]
+        for column, values in enumerate(increments):
+            table[1:, column] = values
         totals_after = np.cumsum(table, axis=0)[1:]
         if n >= BULK_STEPS and len(self.sums) == 1:
             # a whole log's steps: the totals stay an array (read only for long runs of steps: across)
@@ -219,11 +200,12 @@ class OdometryTrack:
             listed.extend(totals_after.tolist())
             self.sums = listed
         oth_after = oth[1:]
-        self._chunks.append(
-            TrackArrays(
-                steps.t, vx, vy, wz, steps.held[0], steps.held[1], steps.held[2], ox, oy, oth_after, totals_after
+        if self._chunks:
+            self._chunks.append(
+                TrackArrays(
+                    steps.t, vx, vy, wz, steps.held[0], steps.held[1], steps.held[2], ox, oy, oth_after, totals_after
+                )
             )
-        )
         self.t.extend(steps.t.tolist())
         self.vx.extend(vx.tolist())
         self.vy.extend(vy.tolist())
@@ -234,7 +216,7 @@ class OdometryTrack:
         self.ox.extend(ox.tolist())
         self.oy.extend(oy.tolist())
         self.oth.extend(oth_after.tolist())
-        self.dist.extend(np.cumsum(np.concatenate(([self.dist[-1]], speed * dt)))[1:].tolist())
+        self.dist.extend(np.cumsum(np.concatenate(([self.dist[-1]], np.hypot(vx, vy) * dt)))[1:].tolist())
 
     def drop_before(self, step: int) -> None:
         """Forget the steps before step number `step` (they can no longer be propagated from)."""
@@ -313,6 +295,23 @@ class OdometryTrack:
         if self.first:
             raise RuntimeError("a trimmed track has no arrays")
         chunks = self._chunks
+        if not chunks:  # steps were added one at a time: the arrays come from the lists
+            a = np.array
+            chunks.append(
+                TrackArrays(
+                    a(self.t),
+                    a(self.vx),
+                    a(self.vy),
+                    a(self.wz),
+                    a(self.hx),
+                    a(self.hy),
+                    a(self.hw),
+                    a(self.ox),
+                    a(self.oy),
+                    a(self.oth),
+                    np.array(self.sums, dtype=np.float64).reshape(-1, len(SUMS)),
+                )
+            )
         if len(chunks) > 1:
             joined = [np.concatenate([getattr(chunk, name) for chunk in chunks]) for name in TrackArrays.__slots__]
             chunks[:] = [TrackArrays(*joined)]
@@ -337,6 +336,56 @@ class TrackArrays:
     oy: FloatArray
     oth: FloatArray
     sums: FloatArray
+
+
+def _motion(vx: Any, vy: Any, wz: Any, dt: Any, heading: Any, *, midpoint: bool, lib: ModuleType) -> Any:
+    """A step's displacement (dx, dy) in the odometry frame from `heading` before it, and the cos and sin used (eq. 5
+    at the midpoint heading, or the paper's start heading): floats with lib=math, arrays with numpy."""
+    th = heading + 0.5 * wz * dt if midpoint else heading
+    c, s = lib.cos(th), lib.sin(th)
+    return (vx * c - vy * s) * dt, (vx * s + vy * c) * dt, c, s
+
+
+def _noise(  # noqa: PLR0917 - a step's parts, as floats or arrays
+    vx: Any, vy: Any, wz: Any, dt: Any, c: Any, s: Any, noise: ekf.ControlNoise, *, lib: ModuleType
+) -> Any:
+    """A step's process noise Q = G M G^T (robotd.ekf.ControlNoise) as (qxx, qxy, qyy, qtt); its heading cross terms
+    are zero. The random-walk terms grow with distance and angle, not time."""
+    speed = lib.hypot(vx, vy)
+    inv_dt = 1.0 / dt
+    m_vx = noise.lin2 * speed * inv_dt + noise.rel2 * vx * vx + noise.const_v2
+    m_vy = noise.lat2 * speed * inv_dt + noise.rel2 * vy * vy + noise.const_v2
+    m_wz = (noise.slip2 * speed + noise.turn2 * abs(wz)) * inv_dt + noise.rel2 * wz * wz + noise.const_w2
+    dt2 = dt * dt
+    cc, ss = c * c, s * s
+    return dt2 * (cc * m_vx + ss * m_vy), dt2 * c * s * (m_vx - m_vy), dt2 * (ss * m_vx + cc * m_vy), dt2 * m_wz
+
+
+def _increments(  # noqa: PLR0917 - a step's parts, as floats or arrays
+    qxx: Any, qxy: Any, qyy: Any, qtt: Any, column: tuple[Any, Any], w: tuple[Any, Any], before: Any, move: Any
+) -> list[Any]:
+    """What a step adds to each running total, in SUMS order: `column` is its Phi column (a, b), w the perpendicular
+    of the odometry position after it, `before` the qtt total before it, move its (vx, vy, dt)."""
+    a, b = column
+    wx, wy = w
+    return [
+        qtt,
+        qtt * wx,
+        qtt * wy,
+        qtt * wx * wx,
+        qtt * wx * wy,
+        qtt * wy * wy,
+        qxx,
+        qxy,
+        qyy,
+        a * a,
+        a * b,
+        b * b,
+        a * a * before,
+        a * b * before,
+        b * b * before,
+        unknown_heading_variance(*move),
+    ]
 
 
 def unknown_heading_variance(vx: Any, vy: Any, dt: Any) -> Any:

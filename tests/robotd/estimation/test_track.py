@@ -7,6 +7,7 @@ import math
 import random
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -184,3 +185,22 @@ def test_the_noise_estimates_running_median_is_the_median_of_the_window(values: 
         gate._learn_noise(inn, gate.r)
         window = sorted(gate.innovations)
         assert gate._ordered == window
+
+
+@pytest.mark.parametrize(("noise", "midpoint"), [(NOISE, True), (PAPER_NOISE, False)])
+def test_steps_added_one_at_a_time_equal_steps_added_together(noise: ekf.ControlNoise, midpoint: bool) -> None:
+    rng = random.Random(8)
+    t = np.cumsum([rng.uniform(0.01, 0.2) for _ in range(300)])
+    vx, vy, wz = (np.array([rng.uniform(-0.5, 0.5) for _ in range(300)]) for _ in range(3))
+    together, one_by_one = OdometryTrack(noise, midpoint=midpoint), OdometryTrack(noise, midpoint=midpoint)
+    for track in (together, one_by_one):
+        track.start(0.0, (0.0, 0.0, 0.0))
+    together.extend(StepTwists(t, vx, vy, wz, (vx, vy, wz)))
+    for k in range(len(t)):
+        u = (float(vx[k]), float(vy[k]), float(wz[k]))
+        one_by_one.append(float(t[k]), u, u)
+    for name in ("t", "ox", "oy", "oth", "dist", "hx"):
+        assert np.allclose(getattr(together, name), getattr(one_by_one, name), rtol=1e-12, atol=1e-12), name
+    assert np.allclose(np.array(together.sums), np.array(one_by_one.sums), rtol=1e-10, atol=1e-15)
+    whole, rebuilt = together.arrays(), one_by_one.arrays()
+    assert np.allclose(whole.sums, rebuilt.sums, rtol=1e-10, atol=1e-15)
