@@ -36,7 +36,7 @@ from robotd.estimates import evaluate
 from robotd.fixgate import Diagnostics, FixGate, TrackState, Verdict
 from robotd.heading import HeadingAligner, HeadingCheck, RotationFit
 from robotd.history import Anchor, FixRecord, History, Predictor, State, Twist3
-from robotd.track import OdometryTrack, TrackArrays
+from robotd.track import OdometryTrack, StepTwists, TrackArrays
 from robotd.wheelsteps import TickKinematics, WheelFeed
 
 # An initial heading standard deviation above this says the heading is unknown (the robot was put down anywhere).
@@ -99,6 +99,7 @@ class Estimator:
         self._history = History(self._track, self._predictor, first, c.history_s, keep_past=self._latency)
         self._last_accept_t = -math.inf
         self._wheels = WheelFeed(self._kinematics, c.predict_period_s)
+        self._loaded_kind = "wheels"  # what load_wheels or load_twists took
         self._spans: list[
             tuple[npt.NDArray[np.int64], Anchor, bool]
         ] = []  # mark_samples: samples, anchor, heading known
@@ -170,6 +171,34 @@ class Estimator:
         self._history.visible = 0
         return True
 
+    def load_twists(
+        self,
+        times: npt.NDArray[np.float64],
+        vx: npt.NDArray[np.float64],
+        vy: npt.NDArray[np.float64],
+        wz: npt.NDArray[np.float64],
+    ) -> bool:
+        """Take a whole log's twist samples at once (times strictly increasing, all finite), to be fed in order with
+        on_loaded_samples; the steps are those of on_twist one by one. False (nothing taken) otherwise."""
+        if len(self._track) or not all(np.all(np.isfinite(column)) for column in (vx, vy, wz)):
+            return False
+        if not self._wheels.load_steps(times):
+            return False
+        self._loaded_kind = "twists"
+        t0 = float(times[0])
+        self._track.start(t0, (float(vx[0]), float(vy[0]), float(wz[0])))
+        # a twist is held until the next: the step to sample k moves with twist k - 1
+        self._track.extend(StepTwists(times[1:], vx[:-1], vy[:-1], wz[:-1], (vx[1:], vy[1:], wz[1:])))
+        if self._history.start == -math.inf:
+            self._set_clock(t0)
+        self._history.visible = 0
+        return True
+
+    def on_loaded_samples(self, start: int, stop: int) -> None:
+        """Loaded samples (load_wheels, load_twists) [start, stop) have arrived, in order: their steps are revealed."""
+        self._history.visible = self._wheels.feed(start, stop)
+        self.counters[self._loaded_kind] += stop - start
+
     def on_wheel_samples(
         self, times: list[float], ticks: list[tuple[int, int, int, int]], start: int, stop: int
     ) -> None:
@@ -181,8 +210,7 @@ class Estimator:
             for i in range(start, stop):
                 self.on_wheels(times[i], ticks[i])
             return
-        self._history.visible = self._wheels.feed(start, stop)
-        self.counters["wheels"] += stop - start
+        self.on_loaded_samples(start, stop)
 
     def on_twist(self, t: float, vx: float, vy: float, wz: float) -> None:
         """A measured body twist (m/s, rad/s) at time t, held until the next one."""
@@ -416,12 +444,13 @@ class Estimator:
         _, x, y, th, _, p = self._extrapolate(t)
         self._ready.append((t, x, y, th, p))
 
-    def mark_samples(self, samples: npt.NDArray[np.int64]) -> None:
-        """Take outputs at loaded wheel samples (indices, all fed already, none before an earlier mark, no fix since
-        they were fed): each that of position(times[i]) right after sample i was fed. Computed by marked()."""
+    def mark_samples(self, samples: npt.NDArray[np.int64], *, unplaced: bool = False) -> None:
+        """Take outputs at loaded samples (indices, all fed already, none before an earlier mark, no fix since they
+        were fed): each that of position(times[i]) right after sample i was fed. Computed by marked(). None before a
+        fix placed the filter, unless `unplaced` (odometry alone: the initial pose carried forward)."""
         if self._wheels.loaded is None:
-            raise RuntimeError("mark_samples needs wheel samples loaded with load_wheels")
-        if self._fix_gate.state is TrackState.INITIALISING or not len(samples):
+            raise RuntimeError("mark_samples needs samples loaded with load_wheels or load_twists")
+        if (self._fix_gate.state is TrackState.INITIALISING and not unplaced) or not len(samples):
             return
         self._spans.append((samples, self._history.newest, self._predictor.heading_known))
 

@@ -1,4 +1,4 @@
-"""Bulk parsing of the sensor log's standard lines: wheels, truth and ips lines in the exact shape `encode` writes.
+"""Bulk parsing of the sensor log's standard lines: wheels, truth, ips and twist lines in the shape `encode` writes.
 
 A log is mostly wheel samples, and json.loads costs microseconds a line. Here every line of the text is checked and
 parsed at C speed (numpy over blocks of about a megabyte of whole lines, no Python loop over lines), and a line is
@@ -37,6 +37,7 @@ import numpy.typing as npt
 # What each line is, in file order. Events: wheels, truth, other (what logfile.Columns keeps); while parsing also:
 WHEELS_KIND, TRUTH_KIND, OTHER_KIND = 1, 2, 0
 IPS_LINE, PER_LINE, NO_EVENT = 3, 4, -1  # a bulk-parsed fix, a line for the per-line reader, a line without event
+TWIST_LINE = 5  # a bulk-parsed twist sample
 
 NEWLINE, COMMA, MINUS, DOT = b"\n,-."
 FLOAT_DIGITS = 15  # at most 15 digits are below 2^53: exact as a double
@@ -78,19 +79,21 @@ TRUTH = _checked(Template(TRUTH_KIND, ('{"t": ', ', "type": "truth", "x": ', ', 
 IPS = _checked(
     Template(IPS_LINE, ('{"t": ', ', "type": "ips", "x": ', ', "y": ', ', "z": ', ', "t_meas": ', "}"), "fffff")
 )
-TEMPLATES = (WHEELS, TRUTH, IPS)
+TWIST = _checked(Template(TWIST_LINE, ('{"t": ', ', "type": "twist", "vx": ', ', "vy": ', ', "wz": ', "}"), "ffff"))
+TEMPLATES = (WHEELS, TRUTH, IPS, TWIST)
 
 
 @dataclass(frozen=True, slots=True)
 class Bulk:
-    """The standard lines parsed: each line's kind and end, and the numbers of the wheels, truth and ips lines."""
+    """The standard lines parsed: each line's kind and end, and the numbers of the wheels, truth, ips, twist lines."""
 
-    kinds: npt.NDArray[np.int8]  # WHEELS_KIND, TRUTH_KIND, IPS_LINE or PER_LINE
+    kinds: npt.NDArray[np.int8]  # WHEELS_KIND, TRUTH_KIND, IPS_LINE, TWIST_LINE or PER_LINE
     line_ends: npt.NDArray[np.intp]  # where each line's newline is (the text's length for a last line without)
     wheels_t: npt.NDArray[np.float64]
     wheels_ticks: npt.NDArray[np.int64]  # n x 4
     truth: npt.NDArray[np.float64]  # n x 4: t, x, y, theta
     ips: npt.NDArray[np.float64]  # n x 5: t, x, y, z, t_meas
+    twists: npt.NDArray[np.float64]  # n x 4: t, vx, vy, wz
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,8 +124,8 @@ def parse_standard(text: bytes) -> Bulk:
         blocks.append((0, _parse_block(b"")))
     kinds = np.concatenate([block.kinds for _, block in blocks])
     line_ends = np.concatenate([block.line_ends + start for start, block in blocks])
-    wheels, ticks, truth, ips = (np.concatenate([block.numbers[i] for _, block in blocks]) for i in range(4))
-    return Bulk(kinds, line_ends, wheels[:, 0], ticks, truth, ips)
+    wheels, ticks, truth, ips, twists = (np.concatenate([block.numbers[i] for _, block in blocks]) for i in range(5))
+    return Bulk(kinds, line_ends, wheels[:, 0], ticks, truth, ips, twists)
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,7 +134,7 @@ class _Block:
 
     kinds: npt.NDArray[np.int8]
     line_ends: npt.NDArray[np.intp]
-    numbers: tuple[npt.NDArray[Any], ...]  # wheels' floats and integers, truth's floats, ips' floats
+    numbers: tuple[npt.NDArray[Any], ...]  # wheels' floats and integers, truth's, ips' and twists' floats
 
 
 def _parse_block(text: bytes) -> _Block:
@@ -151,8 +154,8 @@ def _parse_block(text: bytes) -> _Block:
         text, chars, words, line_starts, line_ends, commas, first_comma, np.diff(first_comma, append=len(commas))
     )
     kinds = np.full(len(line_ends), PER_LINE, dtype=np.int8)
-    (wheels, ticks), (truth, _), (ips, _) = (_parse(lines, kinds, template) for template in TEMPLATES)
-    return _Block(kinds, line_ends, (wheels, ticks, truth, ips))
+    (wheels, ticks), (truth, _), (ips, _), (twists, _) = (_parse(lines, kinds, template) for template in TEMPLATES)
+    return _Block(kinds, line_ends, (wheels, ticks, truth, ips, twists))
 
 
 def _parse(
@@ -340,6 +343,8 @@ __all__ = [
     "TEMPLATES",
     "TRUTH",
     "TRUTH_KIND",
+    "TWIST",
+    "TWIST_LINE",
     "WHEELS",
     "WHEELS_KIND",
     "Bulk",

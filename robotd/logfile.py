@@ -285,7 +285,7 @@ def _parse(text: bytes, originals: list[str] | None) -> SensorLog:
         else:
             kinds[index] = OTHER_KIND
             extra_others.append((index, item))
-    others = _others(kinds, bulk.ips, extra_others)
+    others = _others(kinds, bulk, extra_others)
     wheels_t, wheels_ticks, truth = bulk.wheels_t, bulk.wheels_ticks, bulk.truth
     if extra_wheels:
         wheels_t, wheels_ticks = logbulk.merge_in_order(
@@ -306,16 +306,20 @@ def _parse(text: bytes, originals: list[str] | None) -> SensorLog:
     return SensorLog(log.meta, None, log.problems, log.unknown_types, columns=columns)
 
 
-def _others(kinds: npt.NDArray[np.int8], fixes: npt.NDArray[np.float64], extra: list[tuple[int, Event]]) -> list[Event]:
-    """The bulk-read fixes and the other events read line by line, in file order (the fixes' lines become OTHER)."""
+def _others(kinds: npt.NDArray[np.int8], bulk: logbulk.Bulk, extra: list[tuple[int, Event]]) -> list[Event]:
+    """The bulk-read fixes and twists and the other events read line by line, in file order (their lines become
+    OTHER)."""
     fix_lines = np.flatnonzero(kinds == logbulk.IPS_LINE)
+    twist_lines = np.flatnonzero(kinds == logbulk.TWIST_LINE)
     kinds[fix_lines] = OTHER_KIND
-    events = _fixes(fixes.tolist())
-    if not extra:
+    kinds[twist_lines] = OTHER_KIND
+    events = _fixes(bulk.ips.tolist())
+    if not len(twist_lines) and not extra:
         return events
+    events += _twists(bulk.twists.tolist())
     events += [event for _, event in extra]
-    order = np.argsort(np.concatenate((fix_lines, [index for index, _ in extra])), kind="stable")
-    return [events[i] for i in order.tolist()]
+    lines = np.concatenate((fix_lines, twist_lines, np.array([index for index, _ in extra], dtype=np.intp)))
+    return [events[i] for i in np.argsort(lines, kind="stable").tolist()]
 
 
 # IpsFix's fields' slots, in order: a frozen dataclass's __init__ sets each field through object.__setattr__, which
@@ -336,6 +340,24 @@ def _fixes(rows: list[list[float]]) -> list[Event]:
         set_z(fix, z)
         set_t_meas(fix, t_meas)
         events.append(fix)
+    return events
+
+
+_TWIST_SLOTS = tuple(getattr(TwistSample, field.name).__set__ for field in dataclasses.fields(TwistSample))
+
+
+def _twists(rows: list[list[float]]) -> list[Event]:
+    """TwistSample events of (t, vx, vy, wz) rows, as TwistSample(*row) builds them (see _FIX_SLOTS)."""
+    set_t, set_vx, set_vy, set_wz = _TWIST_SLOTS
+    new = object.__new__
+    events: list[Event] = []
+    for t, vx, vy, wz in rows:
+        twist = new(TwistSample)
+        set_t(twist, t)
+        set_vx(twist, vx)
+        set_vy(twist, vy)
+        set_wz(twist, wz)
+        events.append(twist)
     return events
 
 

@@ -154,14 +154,26 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
         odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later
         odometry = Estimator(odo_config, geometry, offset, cpr)
     filters = tuple(est for est in (robotd, paper, odometry) if est is not None)
-    has_twists = any(type(e) is TwistSample for e in others)
-    # a clean wheel column makes all its prediction steps at once (numpy), and outputs are computed together
+    is_twist = [type(e) is TwistSample for e in others]
+    has_twists = any(is_twist)
+    # A clean input column (wheels, or twists alone) makes all its prediction steps at once (numpy), and outputs are
+    # computed together; the other events are fed between runs of its samples (`events`, `events_after`).
     loaded = False
     step_period = config.ekf.predict_period_s
+    input_t, events, events_after = times, others, after
     ends = step_ends(times, step_period) if not has_twists and odometry is None else []
     if ends:
         outcomes = [est.load_wheels(columns.wheels_t, columns.wheels_ticks, ends) for est in filters]
         loaded = all(outcomes)  # (the same columns: all or none)
+    elif has_twists and not times:
+        twists = np.array([(e.t, e.vx, e.vy, e.wz) for e in others if type(e) is TwistSample], dtype=np.float64)
+        outcomes = [est.load_twists(twists[:, 0], twists[:, 1], twists[:, 2], twists[:, 3]) for est in filters]
+        loaded = all(outcomes)
+        if loaded:
+            input_t = twists[:, 0].tolist()
+            events = [e for e, twist in zip(others, is_twist, strict=True) if not twist]
+            twists_before = np.cumsum(is_twist)  # (at an event that is not a twist: the twists before it)
+            events_after = twists_before[~np.array(is_twist)].tolist()
     odometry_track = Track()
     odo_records: tuple[list[float], list[int]] = ([], [])  # record times and wheel samples before them
     fixes: list[tuple[float, float, float]] = []
@@ -185,25 +197,31 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
                 paper.on_fix_lost(event.t)
 
     if loaded:
-        # outputs at the wheel samples that end each OUTPUT_PERIOD_S, marked in runs between the other events
-        marks = ends if step_period == OUTPUT_PERIOD_S else step_ends(times, OUTPUT_PERIOD_S)
+        # outputs at the input samples that end each OUTPUT_PERIOD_S, marked in runs between the other events
+        marks = ends if ends and step_period == OUTPUT_PERIOD_S else step_ends(input_t, OUTPUT_PERIOD_S)
         mark_array = np.array(marks, dtype=np.int64)
         fed = marked = 0
-        for index in range(len(others) + 1):
-            stop = after[index] if index < len(others) else len(times)
+        for index in range(len(events) + 1):
+            stop = events_after[index] if index < len(events) else len(input_t)
             if fed < stop:
                 for est in filters:
-                    est.on_wheel_samples(times, [], fed, stop)  # (loaded: the samples are the estimator's)
+                    est.on_loaded_samples(fed, stop)
                 fed = stop
             upto = bisect.bisect_left(marks, stop, marked)
             if upto > marked:
-                for est in filters:
-                    est.mark_samples(mark_array[marked:upto])
+                robotd.mark_samples(mark_array[marked:upto])
+                if paper is not None:
+                    paper.mark_samples(mark_array[marked:upto])
+                if odometry is not None:
+                    odometry.mark_samples(mark_array[marked:upto], unplaced=True)
                 marked = upto
-            if index < len(others):
-                on_event(others[index])
-        odo_records[0].extend(columns.wheels_t[mark_array].tolist())
-        odo_records[1].extend((mark_array + 1).tolist())
+            if index < len(events):
+                on_event(events[index])
+        if odometry is not None:
+            odometry_track = _marked_track(odometry)
+        elif scored:  # (wheels: dead reckoning below, at the same outputs)
+            odo_records[0].extend(columns.wheels_t[mark_array].tolist())
+            odo_records[1].extend((mark_array + 1).tolist())
     else:
         # an output every OUTPUT_PERIOD_S of input time (wheel samples, twists; fixes only in a log without inputs)
         inputs = bool(times) or has_twists

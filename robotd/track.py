@@ -285,9 +285,8 @@ class OdometryTrack:
     def _totals(self, b: int, j: int) -> tuple[list[float], list[float]]:
         """The running totals at steps b and j, as floats (an array's elements would make the arithmetic numpy's)."""
         sums = self.sums
-        if isinstance(sums, np.ndarray):
-            both: list[list[float]] = sums[[b, j]].tolist()
-            return both[0], both[1]
+        if isinstance(sums, np.ndarray):  # once: rows read one by one are faster from lists
+            sums = self.sums = sums.tolist()
         return sums[b], sums[j]
 
     def arrays(self) -> TrackArrays:

@@ -133,6 +133,18 @@ class WheelFeed:
         vx, vy, wz = self.kinematics.twists(ticks[end] - ticks[begin], times[end] - times[begin])
         return StepTwists(times[end], vx, vy, wz, (vx, vy, wz))
 
+    def load_steps(self, times: npt.NDArray[np.float64]) -> bool:
+        """Take a whole log's samples that each end a step (twist samples: times strictly increasing and finite, at
+        least two); False (nothing taken) otherwise. Nothing is pending between them."""
+        if self.loaded is not None or self.base is not None or len(times) < 2:
+            return False
+        if not (np.all(np.isfinite(times)) and np.all(np.diff(times) > 0.0)):
+            return False
+        self._times = times.tolist()
+        self._ends = list(range(len(times)))
+        self.loaded = Loaded(times, np.zeros((len(times), 4), dtype=np.int64), np.arange(len(times), dtype=np.int64))
+        return True
+
     def feed(self, start: int, stop: int) -> int:
         """Loaded samples [start, stop) have arrived (in order); returns how many steps they complete (with the
         clock's)."""

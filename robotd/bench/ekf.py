@@ -12,8 +12,10 @@ from pathlib import Path
 
 from robotd import cli, ekf, synthlog
 from robotd.config import parse
-from robotd.logfile import LogWriter, Truth, read_log
+from robotd.kinematics import Geometry
+from robotd.logfile import LogWriter, Truth, TwistSample, Wheels, read_log
 from robotd.replay import cyclic_gc_paused, replay, write_outputs
+from robotd.wheelsteps import TickKinematics
 
 NAME = "ekf"
 
@@ -79,15 +81,25 @@ def _filterpy_steps(seq: list[tuple[float, float, float, float, float, float]]) 
     return time.perf_counter() - start
 
 
-def write_hour_log(path: Path, loops: int, *, truth: bool = True) -> float:
+def write_hour_log(path: Path, loops: int, *, truth: bool = True, twists: bool = False) -> float:
     """Write a synthetic log (robotd.synthlog: the paper's square, 100 Hz wheels, 8 Hz fixes, outliers and an outage;
-    50 Hz truth unless truth=False) of `loops` squares (42 s each); returns its duration in seconds."""
+    50 Hz truth unless truth=False; each wheel sample as the twist of its ticks if twists) of `loops` squares (42 s
+    each); returns its duration in seconds."""
     meta, events = synthlog.generate(synthlog.SynthSpec(loops=loops), 1)
+    kinematics = TickKinematics(Geometry(), int(meta.robot["counts_per_rev"]))
+    previous: Wheels | None = None
     with open(path, "w", encoding="utf-8") as stream:
         writer = LogWriter(stream, meta)
         for event in events:
-            if truth or type(event) is not Truth:
-                writer.write(event)
+            if type(event) is Truth and not truth:
+                continue
+            if type(event) is Wheels and twists:
+                if previous is not None:
+                    vx, vy, wz = kinematics.twist(previous.ticks, event.ticks, event.t - previous.t)
+                    writer.write(TwistSample(event.t, vx, vy, wz))
+                previous = event
+                continue
+            writer.write(event)
     return events[-1].t - events[0].t
 
 
@@ -134,21 +146,19 @@ def run(quick: bool) -> dict[str, float]:
         "step_ratio": ours / theirs,
     }
     with tempfile.TemporaryDirectory(prefix="robotd-bench-ekf-") as folder:
-        for truth, key, what in (
-            (False, "replay", "no truth; read, robotd's filter, outputs"),
-            (True, "replay_truth", "50 Hz truth; read, 3 methods, metrics, outputs"),
+        for truth, twists, key, what in (
+            (False, False, "replay", "100 Hz wheels, 8 Hz fixes, no truth; read, robotd's filter, outputs"),
+            (True, False, "replay_truth", "100 Hz wheels, 8 Hz fixes, 50 Hz truth; read, 3 methods, metrics, outputs"),
+            (False, True, "replay_twists", "100 Hz twists instead of wheels, 8 Hz fixes, no truth"),
         ):
-            log_path = Path(folder) / ("hour_truth.jsonl" if truth else "hour.jsonl")
-            seconds = write_hour_log(log_path, loops, truth=truth)
+            log_path = Path(folder) / f"{key}.jsonl"
+            seconds = write_hour_log(log_path, loops, truth=truth, twists=twists)
             out = Path(folder) / "out"
             elapsed = _replay_seconds(log_path, out, runs)
             stages = _replay_stages(log_path, out)
             speed = seconds / elapsed
-            target = " (target >= 2000)" if not truth else ""
-            print(
-                f"robotd replay of {seconds:.0f} s (100 Hz wheels, 8 Hz fixes, {what}): "
-                f"{elapsed:.2f} s, {speed:.0f}x real time{target}"
-            )
+            target = " (target >= 2000)" if key == "replay" else ""
+            print(f"robotd replay of {seconds:.0f} s ({what}): {elapsed:.2f} s, {speed:.0f}x real time{target}")
             print(f"  of which read {stages[0]:.2f} s, replay {stages[1]:.2f} s, write {stages[2]:.2f} s")
             figures |= {
                 f"{key}_seconds": elapsed,

@@ -21,6 +21,7 @@ from robotd.estimator import Estimator, TrackState
 from robotd.logfile import IpsFix, IpsLost, LogWriter, SensorLog, Truth, TwistSample, Wheels
 from robotd.metrics import TruthTrack, score
 from robotd.replay import OUTPUT_PERIOD_S, replay
+from robotd.wheelsteps import TickKinematics
 
 GEOMETRY = kinematics.Geometry()
 CPR = 6800
@@ -275,14 +276,31 @@ def _replay_event_by_event(log: SensorLog, config: RobotdConfig) -> dict[str, li
     return tracks
 
 
-@pytest.mark.parametrize("with_twists", [False, True])
-def test_the_replay_equals_feeding_every_event_to_the_estimators(with_twists: bool) -> None:
+def _as_twists(events: list[logfile.Event]) -> list[logfile.Event]:
+    """The log with each wheel sample replaced by the mean twist of its ticks since the previous one."""
+    out: list[logfile.Event] = []
+    last: Wheels | None = None
+    for event in events:
+        if not isinstance(event, Wheels):
+            out.append(event)
+            continue
+        if last is not None:
+            vx, vy, wz = TickKinematics(GEOMETRY, CPR).twist(last.ticks, event.ticks, event.t - last.t)
+            out.append(TwistSample(event.t, vx, vy, wz))
+        last = event
+    return out
+
+
+@pytest.mark.parametrize("inputs", ["wheels", "wheels and twists", "twists"])
+def test_the_replay_equals_feeding_every_event_to_the_estimators(inputs: str) -> None:
     spec = synthlog.SynthSpec(loops=1, ips_offset_m=(0.1, -0.05), outlier_bursts_per_min=6.0)
     meta, events = synthlog.generate(spec, 17)
-    if with_twists:  # a twist sample now and then: the odometry then runs as a third Estimator
+    if inputs == "wheels and twists":  # a twist sample now and then: the odometry then runs as a third Estimator
         events = [*events]
         for k in range(100, len(events), 400):
             events.insert(k, TwistSample(events[k - 1].t, 0.3, 0.0, 0.0))
+    elif inputs == "twists":  # twists alone: loaded at once, as wheels are
+        events = _as_twists(events)
     log = SensorLog(meta=meta, events=events)
     config = parse("")
     result = replay(log, config)

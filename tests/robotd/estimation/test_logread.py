@@ -21,7 +21,8 @@ from robotd.logfile import LogWriter, SensorLog, Truth, Wheels
 WHEELS_LINE = '{{"t": {}, "type": "wheels", "ticks": [{}, {}, {}, {}]}}'
 TRUTH_LINE = '{{"t": {}, "type": "truth", "x": {}, "y": {}, "theta": {}}}'
 IPS_LINE = '{{"t": {}, "type": "ips", "x": {}, "y": {}, "z": {}, "t_meas": {}}}'
-TEMPLATES = [(WHEELS_LINE, 5), (TRUTH_LINE, 4), (IPS_LINE, 5)]
+TWIST_LINE = '{{"t": {}, "type": "twist", "vx": {}, "vy": {}, "wz": {}}}'
+TEMPLATES = [(WHEELS_LINE, 5), (TRUTH_LINE, 4), (IPS_LINE, 5), (TWIST_LINE, 4)]
 
 # number places that look almost like the writer's: each must read as json.loads reads it, or go to the per-line reader
 ODD_NUMBERS = [
