@@ -34,7 +34,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 Cov = tuple[float, float, float, float, float, float]
 """A symmetric 3x3 covariance as its upper triangle: (xx, xy, xt, yy, yt, tt)."""
@@ -81,23 +81,28 @@ def process_noise(  # noqa: PLR0917 - as predict
     theta: float, vx: float, vy: float, wz: float, dt: float, noise: ControlNoise
 ) -> Cov:
     """Q = G M G^T for one step, with M scaled by the motion (see ControlNoise)."""
-    speed = math.hypot(vx, vy)
-    inv_dt = 1.0 / dt if dt > 0.0 else 0.0
+    if dt <= 0.0:
+        return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    qxx, qxy, qyy, qtt = process_noise_terms(vx, vy, wz, dt, (math.cos(theta), math.sin(theta)), noise, lib=math)
+    return (qxx, qxy, 0.0, qyy, 0.0, qtt)
+
+
+def process_noise_terms(  # noqa: PLR0917 - a step's parts, as floats or arrays
+    vx: Any, vy: Any, wz: Any, dt: Any, cs: tuple[Any, Any], noise: ControlNoise, *, lib: ModuleType
+) -> Any:
+    """Q's non-zero terms (qxx, qxy, qyy, qtt) for steps of dt > 0 at a heading of cosine and sine `cs`: floats with
+    lib=math, arrays of many steps with numpy. (Q's heading cross terms are zero.)"""
+    speed = lib.hypot(vx, vy)
+    inv_dt = 1.0 / dt
     # Variances of the control errors over this step; the random-walk terms grow with distance, not time,
     # so they enter M divided by dt (G carries dt twice).
     m_vx = noise.lin2 * speed * inv_dt + noise.rel2 * vx * vx + noise.const_v2
     m_vy = noise.lat2 * speed * inv_dt + noise.rel2 * vy * vy + noise.const_v2
     m_wz = (noise.slip2 * speed + noise.turn2 * abs(wz)) * inv_dt + noise.rel2 * wz * wz + noise.const_w2
-    c, s = math.cos(theta), math.sin(theta)
+    c, s = cs
     dt2 = dt * dt
-    return (
-        dt2 * (c * c * m_vx + s * s * m_vy),
-        dt2 * c * s * (m_vx - m_vy),
-        0.0,
-        dt2 * (s * s * m_vx + c * c * m_vy),
-        0.0,
-        dt2 * m_wz,
-    )
+    cc, ss = c * c, s * s
+    return dt2 * (cc * m_vx + ss * m_vy), dt2 * c * s * (m_vx - m_vy), dt2 * (ss * m_vx + cc * m_vy), dt2 * m_wz
 
 
 def predict(  # noqa: PLR0917 - the paper's symbols as plain floats: no packing in the hot path
@@ -300,6 +305,7 @@ __all__ = [
     "predict",
     "predict_with_noise",
     "process_noise",
+    "process_noise_terms",
     "update",
     "wrap_angle",
 ]

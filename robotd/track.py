@@ -146,7 +146,7 @@ class OdometryTrack:
         heading = self.oth[-1]
         dx, dy, c, s = _motion(vx, vy, wz, dt, heading, midpoint=self.midpoint, lib=math)
         ox, oy = self.ox[-1] + dx, self.oy[-1] + dy
-        qxx, qxy, qyy, qtt = _noise(vx, vy, wz, dt, c, s, self.noise, lib=math)
+        qxx, qxy, qyy, qtt = ekf.process_noise_terms(vx, vy, wz, dt, (c, s), self.noise, lib=math)
         previous = self.sums[-1]
         previous = previous.tolist() if isinstance(previous, np.ndarray) else previous
         increments = _increments(qxx, qxy, qyy, qtt, (-dy, dx), (-oy, ox), previous[0], (vx, vy, dt))
@@ -183,7 +183,7 @@ class OdometryTrack:
         dx, dy, c, s = _motion(vx, vy, wz, dt, oth[:-1], midpoint=self.midpoint, lib=np)
         ox = np.cumsum(np.concatenate(([self.ox[-1]], dx)))[1:]
         oy = np.cumsum(np.concatenate(([self.oy[-1]], dy)))[1:]
-        qxx, qxy, qyy, qtt = _noise(vx, vy, wz, dt, c, s, self.noise, lib=np)
+        qxx, qxy, qyy, qtt = ekf.process_noise_terms(vx, vy, wz, dt, (c, s), self.noise, lib=np)
         totals = np.array(self.sums[-1])
         before = totals[0] + np.concatenate(([0.0], np.cumsum(qtt)[:-1]))  # qtt total before each step
         increments = _increments(qxx, qxy, qyy, qtt, (-dy, dx), (-oy, ox), before, (vx, vy, dt))
@@ -343,21 +343,6 @@ def _motion(vx: Any, vy: Any, wz: Any, dt: Any, heading: Any, *, midpoint: bool,
     th = heading + 0.5 * wz * dt if midpoint else heading
     c, s = lib.cos(th), lib.sin(th)
     return (vx * c - vy * s) * dt, (vx * s + vy * c) * dt, c, s
-
-
-def _noise(  # noqa: PLR0917 - a step's parts, as floats or arrays
-    vx: Any, vy: Any, wz: Any, dt: Any, c: Any, s: Any, noise: ekf.ControlNoise, *, lib: ModuleType
-) -> Any:
-    """A step's process noise Q = G M G^T (robotd.ekf.ControlNoise) as (qxx, qxy, qyy, qtt); its heading cross terms
-    are zero. The random-walk terms grow with distance and angle, not time."""
-    speed = lib.hypot(vx, vy)
-    inv_dt = 1.0 / dt
-    m_vx = noise.lin2 * speed * inv_dt + noise.rel2 * vx * vx + noise.const_v2
-    m_vy = noise.lat2 * speed * inv_dt + noise.rel2 * vy * vy + noise.const_v2
-    m_wz = (noise.slip2 * speed + noise.turn2 * abs(wz)) * inv_dt + noise.rel2 * wz * wz + noise.const_w2
-    dt2 = dt * dt
-    cc, ss = c * c, s * s
-    return dt2 * (cc * m_vx + ss * m_vy), dt2 * c * s * (m_vx - m_vy), dt2 * (ss * m_vx + cc * m_vy), dt2 * m_wz
 
 
 def _increments(  # noqa: PLR0917 - a step's parts, as floats or arrays

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from log_reference import reference_lines
 
 from robotd import deadreckoning, ekf, kinematics, logfile, synthlog
 from robotd.config import RobotdConfig, parse
@@ -78,24 +79,6 @@ def _canonical_lines(seed: int) -> list[str]:
     return buffer.getvalue().splitlines(keepends=True)
 
 
-def _reference(lines: list[str]) -> SensorLog:
-    """The plain reader: every line through json.loads."""
-    log = SensorLog()
-    for number, line in enumerate(lines, start=1):
-        try:
-            item = logfile._parse_line(line)  # the per-line reader is the reference
-        except ValueError as error:
-            log.problems.append(f"line {number}: {error}")
-            continue
-        if isinstance(item, str):
-            log.unknown_types[item] += 1
-        elif isinstance(item, logfile.Meta):
-            log.meta = item
-        elif item is not None:
-            log.events.append(item)
-    return log
-
-
 def _same_events(a: list[logfile.Event], b: list[logfile.Event]) -> bool:
     def key(event: logfile.Event) -> tuple[object, ...]:
         values = dataclasses.astuple(event)
@@ -116,7 +99,7 @@ def _assert_same(parsed: SensorLog, reference: SensorLog) -> None:
 def test_each_odd_line_among_standard_ones_is_read_as_json_would(odd: str) -> None:
     lines = _canonical_lines(23)
     lines.insert(len(lines) // 2, odd + "\n")
-    _assert_same(logfile.parse_lines(lines), _reference(lines))
+    _assert_same(logfile.parse_lines(lines), reference_lines(lines))
 
 
 def test_bulk_parsing_equals_json_line_by_line_with_odd_lines_mixed_in(tmp_path: Path) -> None:
@@ -125,10 +108,10 @@ def test_bulk_parsing_equals_json_line_by_line_with_odd_lines_mixed_in(tmp_path:
     mixed = list(lines)
     for odd in ODD_LINES:
         mixed.insert(rng.randrange(1, len(mixed)), odd + "\n")
-    reference = _reference(mixed)
+    reference = reference_lines(mixed)
     assert len(reference.problems) >= 15  # the odd lines really are odd
     _assert_same(logfile.parse_lines(mixed), reference)
-    _assert_same(logfile.parse_lines([line.rstrip("\n") for line in mixed]), _reference(mixed))
+    _assert_same(logfile.parse_lines([line.rstrip("\n") for line in mixed]), reference_lines(mixed))
     path = tmp_path / "mixed.jsonl"
     path.write_text("".join(mixed).rstrip("\n"), encoding="utf-8")  # and a last line without its newline
     _assert_same(logfile.read_log(path), reference)
@@ -141,7 +124,7 @@ def test_a_log_of_standard_lines_takes_the_bulk_path_and_round_trips(tmp_path: P
     path = tmp_path / "log.jsonl"
     path.write_text("".join(lines), encoding="utf-8")
     log = logfile.read_log(path)
-    _assert_same(log, _reference(lines))
+    _assert_same(log, reference_lines(lines))
     columns = log.columns()
     assert len(columns.wheels_t) == sum(1 for line in lines if '"wheels"' in line)
     assert "".join(logfile.encode(e) + "\n" for e in log.events) == "".join(lines[1:])
@@ -168,7 +151,7 @@ def test_any_damage_to_standard_lines_is_read_as_json_would(edits: list[tuple[in
         line = lines[index]
         position = position_pick % (len(line) - 1)
         lines[index] = line[:position] + ("" if delete else char) + line[position + 1 :]
-    _assert_same(logfile.parse_lines(lines), _reference(lines))
+    _assert_same(logfile.parse_lines(lines), reference_lines(lines))
 
 
 def _wheel_stream(seed: int) -> list[tuple[float, tuple[int, int, int, int]]]:

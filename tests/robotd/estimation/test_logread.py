@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from log_reference import reference_lines
 
 from robotd import logbulk, logfile, synthlog
 from robotd.logfile import LogWriter, SensorLog, Truth, Wheels
@@ -35,33 +36,13 @@ ODD_NUMBERS = [
 ]
 
 
-def _reference_lines(lines: list[str]) -> SensorLog:
-    """The plain reader: every line through the per-line reader (json.loads), ticks checked to fit an int64."""
-    log = SensorLog()
-    for number, line in enumerate(lines, start=1):
-        try:
-            item = logfile._parse_line(line)
-            if isinstance(item, Wheels) and not all(-(2**63) <= n < 2**63 for n in item.ticks):
-                raise ValueError("'ticks' must be 64-bit integers")
-        except ValueError as error:
-            log.problems.append(f"line {number}: {error}")
-            continue
-        if isinstance(item, str):
-            log.unknown_types[item] += 1
-        elif isinstance(item, logfile.Meta):
-            log.meta = item
-        elif item is not None:
-            log.events.append(item)
-    return log
-
-
 def _reference_file(path: Path) -> SensorLog:
     """The file read as a text file is (UTF-8, errors replaced, universal newlines), then line by line."""
     with open(path, encoding="utf-8", errors="replace") as stream:
         text = stream.read()
     lines = [line + "\n" for line in text.split("\n")]
     lines[-1] = lines[-1].removesuffix("\n")
-    return _reference_lines(lines if lines[-1] else lines[:-1])
+    return reference_lines(lines if lines[-1] else lines[:-1])
 
 
 def _key(value: object) -> object:
@@ -139,7 +120,7 @@ def test_each_odd_number_in_each_place_is_read_as_json_would(template: str, plac
         numbers[place] = odd
         lines.append(template.format(*numbers) + "\n")
     mixed = [lines[0], WHEELS_LINE.format(0.5, 1, 2, 3, 4) + "\n", *lines[1:]]
-    _assert_same(logfile.parse_lines(mixed), _reference_lines(mixed))
+    _assert_same(logfile.parse_lines(mixed), reference_lines(mixed))
 
 
 @pytest.mark.parametrize(("template", "places"), TEMPLATES)
@@ -149,7 +130,7 @@ def test_a_line_damaged_at_any_one_byte_is_read_as_json_would(template: str, pla
     damaged += [line[:at] + "," + line[at:] for at in range(len(line) + 1)]  # a comma more: the commas move
     lines = [text + "\n" for text in damaged]
     parsed = logfile.parse_lines(lines)
-    _assert_same(parsed, _reference_lines(lines))
+    _assert_same(parsed, reference_lines(lines))
     assert len(parsed.problems) > len(lines) // 2
 
 
@@ -226,7 +207,7 @@ def test_any_log_is_read_as_a_text_file_read_line_by_line_through_json_would_be(
     path.write_bytes(data)
     _assert_same(logfile.read_log(path), _reference_file(path))
     given_lines = [text + "\n" for text in texts]
-    _assert_same(logfile.parse_lines(given_lines), _reference_lines(given_lines))
+    _assert_same(logfile.parse_lines(given_lines), reference_lines(given_lines))
 
 
 def test_a_log_is_read_the_same_across_block_boundaries(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
@@ -268,6 +249,6 @@ def test_lines_given_with_newlines_or_surrogates_inside_are_read_one_by_one() ->
     standard = WHEELS_LINE.format(1.5, 1, 2, 3, 4)
     lines = [standard, standard.replace(", ", ",\n", 1), standard + "\n", "\ud800" + standard, standard[:-1] + "\n"]
     parsed = logfile.parse_lines(lines)
-    _assert_same(parsed, _reference_lines(lines))
+    _assert_same(parsed, reference_lines(lines))
     assert len(parsed.events) == 3  # the one split by a newline is still one line, and JSON's whitespace
     assert [int(problem.split(":")[0].split()[1]) for problem in parsed.problems] == [4, 5]
