@@ -3,8 +3,9 @@
 Theory of operation
 - Inputs (wheel ticks or body twists) make prediction steps on the odometry track (robotd.track). Ticks are exact
   displacements: they are accumulated and become one step at their mean twist at most every `predict_period_s`.
-  A twist is a sample held until the next. A replay may load a whole log's wheel samples at once (`load_wheels`):
-  the same steps, made in one numpy pass, revealed as the samples are fed.
+  A twist is a sample held until the next. A replay may load a whole log's wheel or twist samples at once
+  (`load_wheels`, `load_twists`): the same steps, made in one numpy pass, revealed as the samples are fed; its
+  outputs are then marked and computed together (robotd.estimates).
 - Fixes leave anchors on the track (robotd.history): the state at any time is the newest anchor before it carried
   forward in O(1). A fix measured at `t_meas` in the past is fused at that time, from the state there; the anchors
   after it are made again (a late fix lands exactly where an on-time one would, at a cost that does not depend on
@@ -32,7 +33,7 @@ import numpy.typing as npt
 
 from robotd import ekf, kinematics
 from robotd.config import EkfConfig
-from robotd.estimates import evaluate
+from robotd.estimates import Span, evaluate
 from robotd.fixgate import Diagnostics, FixGate, TrackState, Verdict
 from robotd.heading import HeadingAligner, HeadingCheck, RotationFit
 from robotd.history import Anchor, FixRecord, History, Predictor, State, Twist3
@@ -100,9 +101,7 @@ class Estimator:
         self._last_accept_t = -math.inf
         self._wheels = WheelFeed(self._kinematics, c.predict_period_s)
         self._loaded_kind = "wheels"  # what load_wheels or load_twists took
-        self._spans: list[
-            tuple[npt.NDArray[np.int64], Anchor, bool]
-        ] = []  # mark_samples: samples, anchor, heading known
+        self._spans: list[Span] = []  # outputs marked at loaded samples (mark_samples)
         self._ready: list[tuple[float, float, float, float, ekf.Cov]] = []  # outputs computed when marked
         self._arrays: TrackArrays | None = None
         # the state at the newest step: (newest anchor, visible steps, state, whether the state is at that step)

@@ -130,10 +130,6 @@ class History:
         self.anchors = [anchor]
         self.times = [anchor.t]
 
-    def index_at(self, t: float) -> int:
-        """The index of the last anchor at or before t."""
-        return bisect.bisect_right(self.times, t) - 1
-
     def newest_step_t(self) -> float:
         """The end time of the newest visible step (-inf before the clock started)."""
         return self.track.t[self.visible - 1] if self.visible else -math.inf
