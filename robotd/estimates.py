@@ -9,14 +9,17 @@ a log's outputs are computed at the end in a few array operations, with the same
 
 from __future__ import annotations
 
+import math
 from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
 
-from robotd import ekf
+from robotd import ekf, kinematics
+from robotd.config import EkfConfig
+from robotd.estimator import Estimator, TrackState
 from robotd.history import Anchor, widen_for_unknown_heading
-from robotd.track import TrackArrays, carry
+from robotd.track import StepTwists, TrackArrays, carry
 from robotd.wheelsteps import Loaded, TickKinematics
 
 FloatArray = npt.NDArray[np.float64]
@@ -121,4 +124,121 @@ def _carry(  # noqa: PLR0917 - the parts of many states, as arrays
     return out_x, out_y, out_th, out_p
 
 
-__all__ = ["Columns", "Span", "evaluate"]
+class ReplayEstimator(Estimator):
+    """The estimator of a replay: a whole log's wheel or twist samples may be taken at once, and its outputs marked
+    as it goes and computed together at the end (`marked`). Fed one event at a time, it is the daemon's Estimator."""
+
+    def __init__(
+        self,
+        ekf_config: EkfConfig,
+        geometry: kinematics.Geometry,
+        ips_offset_m: tuple[float, float],
+        counts_per_rev: int,
+        *,
+        paper: bool = False,
+    ) -> None:
+        super().__init__(ekf_config, geometry, ips_offset_m, counts_per_rev, paper=paper)
+        self._loaded_kind = "wheels"  # what load_wheels or load_twists took
+        self._spans: list[Span] = []  # outputs marked at loaded samples (mark_samples)
+        self._ready: list[tuple[float, float, float, float, ekf.Cov]] = []  # outputs computed when marked (mark)
+        self._arrays: TrackArrays | None = None
+
+    def load_wheels(
+        self, times: npt.NDArray[np.float64], ticks: npt.NDArray[np.int64], ends: list[int] | None = None
+    ) -> bool:
+        """Take a whole log's wheel samples at once (times strictly increasing and finite, ticks n x 4), to be fed
+        in order with on_wheel_samples; the steps are those of feeding them one by one. False (nothing taken) when
+        inputs were already given or the times are not clean. Twist samples cannot be mixed in afterwards.
+
+        `ends`, if given, is wheelsteps.step_ends(times, predict_period_s), already computed by the caller.
+        """
+        if len(self._track):
+            return False
+        steps = self._wheels.load(times, ticks, ends)
+        if steps is None:
+            return False
+        t0 = float(times[0])
+        self._track.start(t0, (0.0, 0.0, 0.0))
+        self._track.extend(steps)
+        if self._history.start == -math.inf:
+            self._set_clock(t0)
+        self._history.visible = 0
+        return True
+
+    def load_twists(
+        self,
+        times: npt.NDArray[np.float64],
+        vx: npt.NDArray[np.float64],
+        vy: npt.NDArray[np.float64],
+        wz: npt.NDArray[np.float64],
+    ) -> bool:
+        """Take a whole log's twist samples at once (times strictly increasing, all finite), to be fed in order with
+        on_loaded_samples; the steps are those of on_twist one by one. False (nothing taken) otherwise."""
+        if len(self._track) or not all(np.all(np.isfinite(column)) for column in (vx, vy, wz)):
+            return False
+        if not self._wheels.load_steps(times):
+            return False
+        self._loaded_kind = "twists"
+        t0 = float(times[0])
+        self._track.start(t0, (float(vx[0]), float(vy[0]), float(wz[0])))
+        # a twist is held until the next: the step to sample k moves with twist k - 1
+        self._track.extend(StepTwists(times[1:], vx[:-1], vy[:-1], wz[:-1], (vx[1:], vy[1:], wz[1:])))
+        if self._history.start == -math.inf:
+            self._set_clock(t0)
+        self._history.visible = 0
+        return True
+
+    def on_loaded_samples(self, start: int, stop: int) -> None:
+        """Loaded samples (load_wheels, load_twists) [start, stop) have arrived, in order: their steps are revealed."""
+        self._history.visible = self._wheels.feed(start, stop)
+        self.counters[self._loaded_kind] += stop - start
+
+    def on_wheel_samples(
+        self, times: list[float], ticks: list[tuple[int, int, int, int]], start: int, stop: int
+    ) -> None:
+        """on_wheels(times[i], ticks[i]) for i in range(start, stop), in one call: the same result.
+
+        After load_wheels, the samples are those loaded, fed in order: their steps are revealed, nothing computed.
+        """
+        if self._wheels.loaded is None:
+            for i in range(start, stop):
+                self.on_wheels(times[i], ticks[i])
+            return
+        self.on_loaded_samples(start, stop)
+
+    def mark(self, t: float) -> None:
+        """Take an output at t (that of position(t)), to be read with marked(); none before a fix placed the filter."""
+        if self._wheels.loaded is not None:
+            raise RuntimeError("after load_wheels outputs are marked at wheel samples: mark_samples")
+        if self._fix_gate.state is TrackState.INITIALISING:
+            return
+        _, x, y, th, _, p = self._extrapolate(t)
+        self._ready.append((t, x, y, th, p))
+
+    def mark_samples(self, samples: npt.NDArray[np.int64], *, unplaced: bool = False) -> None:
+        """Take outputs at loaded samples (indices, all fed already, none before an earlier mark, no fix since they
+        were fed): each that of position(times[i]) right after sample i was fed. Computed by marked(). None before a
+        fix placed the filter, unless `unplaced` (odometry alone: the initial pose carried forward)."""
+        if self._wheels.loaded is None:
+            raise RuntimeError("mark_samples needs samples loaded with load_wheels or load_twists")
+        if (self._fix_gate.state is TrackState.INITIALISING and not unplaced) or not len(samples):
+            return
+        self._spans.append((samples, self._history.newest, self._predictor.heading_known))
+
+    def marked(self) -> tuple[list[float], list[float], list[float], list[float], npt.NDArray[np.float64]]:
+        """The outputs marked so far, in order: times, x, y, theta, and P's upper triangles (n x 6)."""
+        loaded = self._wheels.loaded
+        if loaded is None:
+            if not self._ready:
+                return [], [], [], [], np.zeros((0, 6))
+            t, x, y, th, p = zip(*self._ready, strict=True)
+            return list(t), list(x), list(y), list(th), np.array(p, dtype=np.float64)
+        if self._arrays is None:
+            self._arrays = self._track.arrays()
+        t_out, xs, ys, ths, ps = evaluate(
+            self._spans, self._arrays, loaded, self._kinematics, self._noise, midpoint=not self.paper
+        )
+        return t_out.tolist(), xs.tolist(), ys.tolist(), ths.tolist(), np.column_stack(ps)
+
+
+__all__ = ["Columns", "ReplayEstimator", "Span", "evaluate"]

@@ -3,9 +3,8 @@
 Theory of operation
 - Inputs (wheel ticks or body twists) make prediction steps on the odometry track (robotd.track). Ticks are exact
   displacements: they are accumulated and become one step at their mean twist at most every `predict_period_s`.
-  A twist is a sample held until the next. A replay may load a whole log's wheel or twist samples at once
-  (`load_wheels`, `load_twists`): the same steps, made in one numpy pass, revealed as the samples are fed; its
-  outputs are then marked and computed together (robotd.estimates).
+  A twist is a sample held until the next. A replay's estimator (robotd.estimates.ReplayEstimator) may take a
+  whole log's samples at once: the same steps, made in one numpy pass, revealed as the samples are fed.
 - Fixes leave anchors on the track (robotd.history): the state at any time is the newest anchor before it carried
   forward in O(1). A fix measured at `t_meas` in the past is fused at that time, from the state there; the anchors
   after it are made again (a late fix lands exactly where an on-time one would, at a cost that does not depend on
@@ -27,17 +26,14 @@ import bisect
 import math
 from dataclasses import dataclass
 from math import isfinite
-
-import numpy as np
-import numpy.typing as npt
+from typing import Self
 
 from robotd import ekf, kinematics
 from robotd.config import EkfConfig
-from robotd.estimates import Span, evaluate
 from robotd.fixgate import Diagnostics, FixGate, TrackState, Verdict
 from robotd.heading import HeadingAligner, HeadingCheck, RotationFit
 from robotd.history import Anchor, FixRecord, History, Predictor, State, Twist3
-from robotd.track import OdometryTrack, StepTwists, TrackArrays
+from robotd.track import OdometryTrack
 from robotd.wheelsteps import TickKinematics, WheelFeed
 
 # An initial heading standard deviation above this says the heading is unknown (the robot was put down anywhere).
@@ -100,10 +96,6 @@ class Estimator:
         self._history = History(self._track, self._predictor, first, c.history_s, keep_past=self._latency)
         self._last_accept_t = -math.inf
         self._wheels = WheelFeed(self._kinematics, c.predict_period_s)
-        self._loaded_kind = "wheels"  # what load_wheels or load_twists took
-        self._spans: list[Span] = []  # outputs marked at loaded samples (mark_samples)
-        self._ready: list[tuple[float, float, float, float, ekf.Cov]] = []  # outputs computed when marked
-        self._arrays: TrackArrays | None = None
         # the state at the newest step: (newest anchor, visible steps, state, whether the state is at that step)
         self._newest: tuple[Anchor, int, State, bool] | None = None
         self._aligner = HeadingAligner(c.heading_align_m, self._offset, enabled=c.heading_align_m > 0.0 and not paper)
@@ -129,7 +121,7 @@ class Estimator:
         self._fix_gate = FixGate(c, self.counters, paper=paper)
 
     @classmethod
-    def paper_filter(cls, ekf_config: EkfConfig, geometry: kinematics.Geometry, counts_per_rev: int) -> Estimator:
+    def paper_filter(cls, ekf_config: EkfConfig, geometry: kinematics.Geometry, counts_per_rev: int) -> Self:
         """The paper's filter as published: no gating, fixes fused on arrival, no lever arm, R = s_ips^2 I."""
         return cls(ekf_config, geometry, (0.0, 0.0), counts_per_rev, paper=True)
 
@@ -147,69 +139,6 @@ class Estimator:
         step = wheels.sample(t, ticks)
         if step is not None:
             self._step_to(step[0], step[1], step[1])
-
-    def load_wheels(
-        self, times: npt.NDArray[np.float64], ticks: npt.NDArray[np.int64], ends: list[int] | None = None
-    ) -> bool:
-        """Take a whole log's wheel samples at once (times strictly increasing and finite, ticks n x 4), to be fed
-        in order with on_wheel_samples; the steps are those of feeding them one by one. False (nothing taken) when
-        inputs were already given or the times are not clean. Twist samples cannot be mixed in afterwards.
-
-        `ends`, if given, is wheelsteps.step_ends(times, predict_period_s), already computed by the caller.
-        """
-        if len(self._track):
-            return False
-        steps = self._wheels.load(times, ticks, ends)
-        if steps is None:
-            return False
-        t0 = float(times[0])
-        self._track.start(t0, (0.0, 0.0, 0.0))
-        self._track.extend(steps)
-        if self._history.start == -math.inf:
-            self._set_clock(t0)
-        self._history.visible = 0
-        return True
-
-    def load_twists(
-        self,
-        times: npt.NDArray[np.float64],
-        vx: npt.NDArray[np.float64],
-        vy: npt.NDArray[np.float64],
-        wz: npt.NDArray[np.float64],
-    ) -> bool:
-        """Take a whole log's twist samples at once (times strictly increasing, all finite), to be fed in order with
-        on_loaded_samples; the steps are those of on_twist one by one. False (nothing taken) otherwise."""
-        if len(self._track) or not all(np.all(np.isfinite(column)) for column in (vx, vy, wz)):
-            return False
-        if not self._wheels.load_steps(times):
-            return False
-        self._loaded_kind = "twists"
-        t0 = float(times[0])
-        self._track.start(t0, (float(vx[0]), float(vy[0]), float(wz[0])))
-        # a twist is held until the next: the step to sample k moves with twist k - 1
-        self._track.extend(StepTwists(times[1:], vx[:-1], vy[:-1], wz[:-1], (vx[1:], vy[1:], wz[1:])))
-        if self._history.start == -math.inf:
-            self._set_clock(t0)
-        self._history.visible = 0
-        return True
-
-    def on_loaded_samples(self, start: int, stop: int) -> None:
-        """Loaded samples (load_wheels, load_twists) [start, stop) have arrived, in order: their steps are revealed."""
-        self._history.visible = self._wheels.feed(start, stop)
-        self.counters[self._loaded_kind] += stop - start
-
-    def on_wheel_samples(
-        self, times: list[float], ticks: list[tuple[int, int, int, int]], start: int, stop: int
-    ) -> None:
-        """on_wheels(times[i], ticks[i]) for i in range(start, stop), in one call: the same result.
-
-        After load_wheels, the samples are those loaded, fed in order: their steps are revealed, nothing computed.
-        """
-        if self._wheels.loaded is None:
-            for i in range(start, stop):
-                self.on_wheels(times[i], ticks[i])
-            return
-        self.on_loaded_samples(start, stop)
 
     def on_twist(self, t: float, vx: float, vy: float, wz: float) -> None:
         """A measured body twist (m/s, rad/s) at time t, held until the next one."""
@@ -433,40 +362,6 @@ class Estimator:
             return None
         _, x, y, th, _, p = self._extrapolate(t)
         return x, y, th, p
-
-    def mark(self, t: float) -> None:
-        """Take an output at t (that of position(t)), to be read with marked(); none before a fix placed the filter."""
-        if self._wheels.loaded is not None:
-            raise RuntimeError("after load_wheels outputs are marked at wheel samples: mark_samples")
-        if self._fix_gate.state is TrackState.INITIALISING:
-            return
-        _, x, y, th, _, p = self._extrapolate(t)
-        self._ready.append((t, x, y, th, p))
-
-    def mark_samples(self, samples: npt.NDArray[np.int64], *, unplaced: bool = False) -> None:
-        """Take outputs at loaded samples (indices, all fed already, none before an earlier mark, no fix since they
-        were fed): each that of position(times[i]) right after sample i was fed. Computed by marked(). None before a
-        fix placed the filter, unless `unplaced` (odometry alone: the initial pose carried forward)."""
-        if self._wheels.loaded is None:
-            raise RuntimeError("mark_samples needs samples loaded with load_wheels or load_twists")
-        if (self._fix_gate.state is TrackState.INITIALISING and not unplaced) or not len(samples):
-            return
-        self._spans.append((samples, self._history.newest, self._predictor.heading_known))
-
-    def marked(self) -> tuple[list[float], list[float], list[float], list[float], npt.NDArray[np.float64]]:
-        """The outputs marked so far, in order: times, x, y, theta, and P's upper triangles (n x 6)."""
-        loaded = self._wheels.loaded
-        if loaded is None:
-            if not self._ready:
-                return [], [], [], [], np.zeros((0, 6))
-            t, x, y, th, p = zip(*self._ready, strict=True)
-            return list(t), list(x), list(y), list(th), np.array(p, dtype=np.float64)
-        if self._arrays is None:
-            self._arrays = self._track.arrays()
-        t_out, xs, ys, ths, ps = evaluate(
-            self._spans, self._arrays, loaded, self._kinematics, self._noise, midpoint=not self.paper
-        )
-        return t_out.tolist(), xs.tolist(), ys.tolist(), ths.tolist(), np.column_stack(ps)
 
     def _extrapolate(self, t: float | None) -> tuple[float, float, float, float, Twist3, ekf.Cov]:
         """Time, pose, twist in force and P of the newest state carried forward to t (mean only) when t is later."""

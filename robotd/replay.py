@@ -25,6 +25,7 @@ import numpy.typing as npt
 
 from robotd import deadreckoning, ekf, kinematics
 from robotd.config import RobotdConfig
+from robotd.estimates import ReplayEstimator
 from robotd.estimates_file import write_estimates
 from robotd.estimator import Diagnostics, Estimator
 from robotd.logfile import Event, IpsFix, IpsLost, SensorLog, TwistSample
@@ -125,7 +126,7 @@ def _record_odometry(track: Track, t: float, est: Estimator) -> None:
     track.theta.append(pose.theta)
 
 
-def _marked_track(est: Estimator) -> Track:
+def _marked_track(est: ReplayEstimator) -> Track:
     """The outputs an estimator marked, as a Track."""
     t, x, y, theta, cov = est.marked()
     return Track(t, x, y, theta, cov)
@@ -135,24 +136,25 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     """Run the three methods over a parsed log and score them when it holds truth (robotd's filter alone without).
 
     The log is read as columns (SensorLog.columns): wheel samples reach the filters in runs between the other
-    events (Estimator.on_wheel_samples), the same inputs in the same order as one on_wheels call each; without twist
-    samples, a clean wheel column is loaded at once (Estimator.load_wheels) and the outputs are marked and computed
-    together at the end (Estimator.mark). Odometry alone is computed for the whole log at once (robotd.deadreckoning)
-    when its wheel times are clean and it has no twist samples, and with a third Estimator otherwise.
+    events (ReplayEstimator.on_wheel_samples), the same inputs in the same order as one on_wheels call each; a clean
+    wheel column, or twists alone, is loaded at once (ReplayEstimator.load_wheels, load_twists) and the outputs are
+    marked and computed together at the end (ReplayEstimator.marked). Odometry alone is computed for the whole log at
+    once (robotd.deadreckoning) when its wheel times are clean and it has no twist samples, and with a third
+    estimator otherwise.
     """
     geometry, offset, cpr, problems = robot_from_log(log, config)
     columns = log.columns()
     scored = len(columns.truth) > 0  # the baselines exist only to be scored: without truth, robotd's filter alone
-    robotd = Estimator(config.ekf, geometry, offset, cpr)
-    paper = Estimator.paper_filter(config.ekf, geometry, cpr) if scored else None
+    robotd = ReplayEstimator(config.ekf, geometry, offset, cpr)
+    paper = ReplayEstimator.paper_filter(config.ekf, geometry, cpr) if scored else None
     times: list[float] = columns.wheels_t.tolist()
     others = columns.others
     after: list[int] = columns.others_after().tolist()
     vectorised = deadreckoning.applies(columns.wheels_t) and not any(type(e) is TwistSample for e in others)
-    odometry: Estimator | None = None
+    odometry: ReplayEstimator | None = None
     if scored and not vectorised:
         odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later
-        odometry = Estimator(odo_config, geometry, offset, cpr)
+        odometry = ReplayEstimator(odo_config, geometry, offset, cpr)
     filters = tuple(est for est in (robotd, paper, odometry) if est is not None)
     is_twist = [type(e) is TwistSample for e in others]
     has_twists = any(is_twist)

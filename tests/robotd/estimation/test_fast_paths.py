@@ -18,6 +18,7 @@ from log_reference import reference_lines
 
 from robotd import deadreckoning, ekf, kinematics, logfile, synthlog
 from robotd.config import RobotdConfig, parse
+from robotd.estimates import ReplayEstimator
 from robotd.estimator import Estimator, TrackState
 from robotd.logfile import IpsFix, IpsLost, LogWriter, SensorLog, Truth, TwistSample, Wheels
 from robotd.metrics import TruthTrack, score
@@ -170,7 +171,7 @@ def _wheel_stream(seed: int) -> list[tuple[float, tuple[int, int, int, int]]]:
 def test_batched_wheel_samples_equal_one_call_per_sample(period: float) -> None:
     config = dataclasses.replace(RobotdConfig().ekf, predict_period_s=period)
     one = Estimator(config, GEOMETRY, (0.05, 0.0), CPR)
-    batch = Estimator(config, GEOMETRY, (0.05, 0.0), CPR)
+    batch = ReplayEstimator(config, GEOMETRY, (0.05, 0.0), CPR)
     samples = _wheel_stream(8)
     times = [t for t, _ in samples]
     ticks = [k for _, k in samples]

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from robotd import ekf, kinematics
 from robotd.config import EkfConfig
+from robotd.estimates import ReplayEstimator
 from robotd.estimator import Estimator
 from robotd.fixgate import FixGate
 from robotd.history import Predictor
@@ -152,7 +153,7 @@ def test_a_long_outage_keeps_the_daemons_history_short_and_the_same_estimate() -
     fixes = {int(k): (0.01 * k + 0.005, rng.gauss(0, 0.02), rng.gauss(0, 0.02)) for k in range(12, 2000, 12)}
     config = dataclasses.replace(EkfConfig(), initial_sigma=(1.0, 1.0, 0.1))
     daemon = Estimator(config, GEOMETRY, (0.0, 0.0), CPR)
-    replayed = Estimator(config, GEOMETRY, (0.0, 0.0), CPR)
+    replayed = ReplayEstimator(config, GEOMETRY, (0.0, 0.0), CPR)
     assert replayed.load_wheels(np.array(times), np.array(ticks, dtype=np.int64))
     longest = prev = 0
     for i, (t, k) in enumerate(zip(times, ticks, strict=True)):
