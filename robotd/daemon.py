@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import math
 import signal
@@ -166,6 +167,10 @@ class Daemon:
             Path(self.config.pose_socket.path).parent.mkdir(parents=True, exist_ok=True)
             await self.pose_server.start()
             transport = await open_teleop(self.config.teleop, self.teleop_receiver, self._on_teleop)
+            # Everything built so far (modules, gpiozero, numpy, the drivers) lives as long as the process: out of
+            # the cyclic collector's sight, its passes stay short and cannot stall a control period.
+            gc.collect()
+            gc.freeze()
             async with asyncio.TaskGroup() as tasks:
                 tasks.create_task(self.encoders.run(self._on_ticks), name="encoders")
                 tasks.create_task(self.marvelmind.run(), name="marvelmind")

@@ -30,7 +30,7 @@ from robotd.estimates_file import write_estimates
 from robotd.estimator import Diagnostics, Estimator
 from robotd.logfile import Event, IpsFix, IpsLost, SensorLog, TwistSample
 from robotd.metrics import ErrorStats, TruthTrack, fit_rotation, score, score_fixes
-from robotd.wheelsteps import step_ends
+from robotd.wheelsteps import PERIOD_SLACK_S, step_ends
 
 OUTPUT_PERIOD_S = 0.05  # the daemon's default pose rate (pose_socket.rate_hz: 20)
 METHODS = ("odometry", "ips", "paper_ekf", "ekf")
@@ -247,7 +247,7 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
         for index in range(len(others) + 1):
             stop = after[index] if index < len(others) else len(times)
             for i in range(fed, stop):
-                if times[i] - last_out >= OUTPUT_PERIOD_S:
+                if times[i] - last_out >= OUTPUT_PERIOD_S - PERIOD_SLACK_S:
                     for est in filters:
                         est.on_wheel_samples(times, ticks, fed, i + 1)
                     fed = i + 1
@@ -262,7 +262,7 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
             event = others[index]
             on_event(event)
             output = type(event) is TwistSample or (type(event) is IpsFix and not inputs)
-            if output and event.t - last_out >= OUTPUT_PERIOD_S:
+            if output and event.t - last_out >= OUTPUT_PERIOD_S - PERIOD_SLACK_S:
                 record(event.t, fed)
                 last_out = event.t
     if scored and odometry is None:

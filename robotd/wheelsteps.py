@@ -17,6 +17,9 @@ from robotd import kinematics
 from robotd.track import StepTwists
 
 Ticks = tuple[int, int, int, int]
+PERIOD_SLACK_S = 1e-6
+"""A period has passed when it is within this of passing: times far from zero (Unix time in a log) carry rounding
+of a fraction of a microsecond, which must not move a step from one sample to the next."""
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -35,7 +38,7 @@ def step_ends(times: list[float], period: float) -> list[int]:
     base_t = times[0] if times else 0.0
     for i in range(1, len(times)):
         t = times[i]
-        if t - base_t >= period:
+        if t - base_t >= period - PERIOD_SLACK_S:
             ends.append(i)
             base_t = t
     return ends
@@ -108,7 +111,7 @@ class WheelFeed:
         if self.base is None:
             self.base, self.base_t = ticks, t
             return t, (0.0, 0.0, 0.0)
-        if t - self.base_t < self.period:
+        if t - self.base_t < self.period - PERIOD_SLACK_S:
             return None
         twist = self.kinematics.twist(self.base, ticks, t - self.base_t)
         self.base, self.base_t = ticks, t
@@ -170,4 +173,4 @@ class WheelFeed:
         return self.kinematics.twist((a1, a2, a3, a4), (b1, b2, b3, b4), self._times[newest] - self._times[e])
 
 
-__all__ = ["Loaded", "TickKinematics", "Ticks", "WheelFeed", "step_ends"]
+__all__ = ["PERIOD_SLACK_S", "Loaded", "TickKinematics", "Ticks", "WheelFeed", "step_ends"]
