@@ -81,7 +81,11 @@ class EncodersConfig:
         in_range(0, 300_000),
     )
     publish_rate_hz: float = setting(
-        100.0, "Rate at which decoded wheel ticks are handed to the estimator.", in_range(1.0, 2000.0)
+        50.0,
+        "Rate at which decoded wheel ticks and speeds are handed to the estimator and the wheel-speed control (which"
+        " runs at control.rate_hz: faster costs CPU for speeds it does not read). Speeds are edge-timed: exact as of"
+        " the last edge, whatever the rate.",
+        in_range(1.0, 2000.0),
     )
     pull: Literal["up", "down", "off"] = setting(
         "up", "Pull resistor of the encoder inputs: up for open-collector encoders, off for push-pull ones."
