@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from robotd import kinematics
+from robotd.track import displacement
 from robotd.wheelsteps import TickKinematics, step_ends
 
 FloatArray = npt.NDArray[np.float64]
@@ -54,10 +55,9 @@ def poses_at(  # noqa: PLR0917 - the log's columns and the robot
     # entry 0 is the clock set by the first sample, at rest; entry m the state after the m-th step
     dth = wz * dt
     theta = np.concatenate(([0.0], np.cumsum(dth)))
-    mid = theta[:-1] + 0.5 * wz * dt
-    c, s = np.cos(mid), np.sin(mid)
-    x = np.concatenate(([0.0], np.cumsum((vx * c - vy * s) * dt)))
-    y = np.concatenate(([0.0], np.cumsum((vx * s + vy * c) * dt)))
+    dx, dy, _, _ = displacement(vx, vy, wz, dt, theta[:-1], midpoint=True, lib=np)
+    x = np.concatenate(([0.0], np.cumsum(dx)))
+    y = np.concatenate(([0.0], np.cumsum(dy)))
     entry_t = np.concatenate((t[:1], t[ends])) if n else np.zeros(1)
     entry_sample = np.concatenate(([0], ends)).astype(np.int64)
     entry_u = (np.concatenate(([0.0], vx)), np.concatenate(([0.0], vy)), np.concatenate(([0.0], wz)))
@@ -79,10 +79,9 @@ def poses_at(  # noqa: PLR0917 - the log's columns and the robot
     ex, ey, eth, et = x[m], y[m], theta[m], entry_t[m]
     later = started & (record_t > et)
     h = np.where(later, record_t - et, 0.0)
-    mid_r = eth + 0.5 * uw * h
-    cr, sr = np.cos(mid_r), np.sin(mid_r)
-    out_x = np.where(later, ex + (ux * cr - uy * sr) * h, ex)
-    out_y = np.where(later, ey + (ux * sr + uy * cr) * h, ey)
+    hx, hy, _, _ = displacement(ux, uy, uw, h, eth, midpoint=True, lib=np)
+    out_x = np.where(later, ex + hx, ex)
+    out_y = np.where(later, ey + hy, ey)
     out_th = wrap(np.where(later, eth + uw * h, eth))
     out_x[~started] = 0.0
     out_y[~started] = 0.0

@@ -19,7 +19,7 @@ from robotd import ekf, kinematics
 from robotd.config import EkfConfig
 from robotd.estimator import Estimator, TrackState
 from robotd.history import Anchor, widen_for_unknown_heading
-from robotd.track import StepTwists, TrackArrays, carry
+from robotd.track import StepTwists, TrackArrays, carry, displacement
 from robotd.wheelsteps import Loaded, TickKinematics
 
 FloatArray = npt.NDArray[np.float64]
@@ -79,11 +79,10 @@ def evaluate(
         )
     # moved on to the output's time, mean only (as Estimator._extrapolate)
     dt = np.where(t_out > when, t_out - when, 0.0)
-    mid = th + 0.5 * wz * dt
-    c, s = np.cos(mid), np.sin(mid)
+    dx, dy, _, _ = displacement(vx, vy, wz, dt, th, midpoint=True, lib=np)
     moving = dt > 0.0
-    x = np.where(moving, x + (vx * c - vy * s) * dt, x)
-    y = np.where(moving, y + (vx * s + vy * c) * dt, y)
+    x = np.where(moving, x + dx, x)
+    y = np.where(moving, y + dy, y)
     th = np.where(moving, (th + wz * dt + np.pi) % ekf.TWO_PI - np.pi, th)  # ekf.wrap_angle
     return t_out, x, y, th, p
 

@@ -33,7 +33,7 @@ from robotd.config import EkfConfig
 from robotd.fixgate import Diagnostics, FixGate, TrackState, Verdict
 from robotd.heading import HeadingAligner, HeadingCheck, RotationFit
 from robotd.history import Anchor, FixRecord, History, Predictor, State, Twist3
-from robotd.track import OdometryTrack
+from robotd.track import OdometryTrack, displacement
 from robotd.wheelsteps import TickKinematics, WheelFeed
 
 # An initial heading standard deviation above this says the heading is unknown (the robot was put down anywhere).
@@ -374,9 +374,8 @@ class Estimator:
         if t > when and math.isfinite(when):
             vx, vy, wz = u
             dt = t - when
-            mid = th + 0.5 * wz * dt
-            c, s = math.cos(mid), math.sin(mid)
-            x, y = x + (vx * c - vy * s) * dt, y + (vx * s + vy * c) * dt
+            dx, dy, _, _ = displacement(vx, vy, wz, dt, th, midpoint=True, lib=math)
+            x, y = x + dx, y + dy
             th = ekf.wrap_angle(th + wz * dt)
             when = t
         return when, x, y, th, u, p

@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+from robotd.ekf import wrap_angle
+
 LN4 = 2.0 * math.log(2.0)  # median of a chi-square with 2 dof: |nu|^2 / sigma^2 has this median
 MAX_POINTS = 400  # a robot standing still must not grow a window forever
 MIN_REALIGN_RAD = 0.35  # smaller heading errors are the EKF's own business: it corrects them from fixes in motion
@@ -138,8 +140,8 @@ class HeadingCheck:
         """Whether to take the fit's heading; filter_theta and filter_var are the filter's heading and its variance
         now (at the fit's window_odo)."""
         # the filter's heading at the window's start is its current heading less the odometry turn since
-        filter_start = wrap(filter_theta - fit.window_odo[2])
-        signed = wrap(fit.rotation - filter_start)
+        filter_start = wrap_angle(filter_theta - fit.window_odo[2])
+        signed = wrap_angle(fit.rotation - filter_start)
         sigma = fit.sigma
         if sigma > MAX_FIT_SIGMA_RAD:
             return False
@@ -158,16 +160,11 @@ class HeadingCheck:
                 if suspect is None:
                     self.suspect = (window, signed, sigma)
                 return False
-            if abs(wrap(signed - suspect[1])) > 3.0 * math.hypot(sigma, suspect[2]):
+            if abs(wrap_angle(signed - suspect[1])) > 3.0 * math.hypot(sigma, suspect[2]):
                 self.suspect = (window, signed, sigma)  # two windows that disagree with each other: neither is proof
                 return False
         self.suspect = None
         return True
-
-
-def wrap(angle: float) -> float:
-    """The same angle in [-pi, pi)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def fit_rotation(
@@ -216,4 +213,4 @@ def fit_rotation(
     return rotation, sigma, tx, ty
 
 
-__all__ = ["LN4", "HeadingAligner", "HeadingCheck", "RotationFit", "fit_rotation", "wrap"]
+__all__ = ["LN4", "HeadingAligner", "HeadingCheck", "RotationFit", "fit_rotation"]

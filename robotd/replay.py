@@ -150,14 +150,14 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     times: list[float] = columns.wheels_t.tolist()
     others = columns.others
     after: list[int] = columns.others_after().tolist()
-    vectorised = deadreckoning.applies(columns.wheels_t) and not any(type(e) is TwistSample for e in others)
+    is_twist = [type(e) is TwistSample for e in others]
+    has_twists = any(is_twist)
+    vectorised = deadreckoning.applies(columns.wheels_t) and not has_twists
     odometry: ReplayEstimator | None = None
     if scored and not vectorised:
         odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later
         odometry = ReplayEstimator(odo_config, geometry, offset, cpr)
     filters = tuple(est for est in (robotd, paper, odometry) if est is not None)
-    is_twist = [type(e) is TwistSample for e in others]
-    has_twists = any(is_twist)
     # A clean input column (wheels, or twists alone) makes all its prediction steps at once (numpy), and outputs are
     # computed together; the other events are fed between runs of its samples (`events`, `events_after`).
     loaded = False

@@ -144,7 +144,7 @@ class OdometryTrack:
         vx, vy, wz = u
         dt = t - self.t[-1]
         heading = self.oth[-1]
-        dx, dy, c, s = _motion(vx, vy, wz, dt, heading, midpoint=self.midpoint, lib=math)
+        dx, dy, c, s = displacement(vx, vy, wz, dt, heading, midpoint=self.midpoint, lib=math)
         ox, oy = self.ox[-1] + dx, self.oy[-1] + dy
         qxx, qxy, qyy, qtt = ekf.process_noise_terms(vx, vy, wz, dt, (c, s), self.noise, lib=math)
         previous = self.sums[-1]
@@ -180,7 +180,7 @@ class OdometryTrack:
         turn[0] = self.oth[-1]
         turn[1:] = wz * dt
         oth = np.cumsum(turn)  # oth[k] is the heading before step k, oth[k + 1] after it
-        dx, dy, c, s = _motion(vx, vy, wz, dt, oth[:-1], midpoint=self.midpoint, lib=np)
+        dx, dy, c, s = displacement(vx, vy, wz, dt, oth[:-1], midpoint=self.midpoint, lib=np)
         ox = np.cumsum(np.concatenate(([self.ox[-1]], dx)))[1:]
         oy = np.cumsum(np.concatenate(([self.oy[-1]], dy)))[1:]
         qxx, qxy, qyy, qtt = ekf.process_noise_terms(vx, vy, wz, dt, (c, s), self.noise, lib=np)
@@ -337,7 +337,7 @@ class TrackArrays:
     sums: FloatArray
 
 
-def _motion(vx: Any, vy: Any, wz: Any, dt: Any, heading: Any, *, midpoint: bool, lib: ModuleType) -> Any:
+def displacement(vx: Any, vy: Any, wz: Any, dt: Any, heading: Any, *, midpoint: bool, lib: ModuleType) -> Any:
     """A step's displacement (dx, dy) in the odometry frame from `heading` before it, and the cos and sin used (eq. 5
     at the midpoint heading, or the paper's start heading): floats with lib=math, arrays with numpy."""
     th = heading + 0.5 * wz * dt if midpoint else heading
@@ -449,5 +449,6 @@ __all__ = [
     "StepTwists",
     "TrackArrays",
     "carry",
+    "displacement",
     "unknown_heading_variance",
 ]

@@ -125,9 +125,7 @@ class WheelFeed:
 
         `ends`, if given, is step_ends(times, period), already computed by the caller.
         """
-        if self.loaded is not None or self.base is not None or len(times) < 2:
-            return None
-        if not (np.all(np.isfinite(times)) and np.all(np.diff(times) > 0.0)):
+        if not self._can_load(times):
             return None
         self._times = times.tolist()
         self._ends = ends if ends is not None else step_ends(self._times, self.period)
@@ -139,14 +137,18 @@ class WheelFeed:
     def load_steps(self, times: npt.NDArray[np.float64]) -> bool:
         """Take a whole log's samples that each end a step (twist samples: times strictly increasing and finite, at
         least two); False (nothing taken) otherwise. Nothing is pending between them."""
-        if self.loaded is not None or self.base is not None or len(times) < 2:
-            return False
-        if not (np.all(np.isfinite(times)) and np.all(np.diff(times) > 0.0)):
+        if not self._can_load(times):
             return False
         self._times = times.tolist()
         self._ends = list(range(len(times)))
         self.loaded = Loaded(times, np.zeros((len(times), 4), dtype=np.int64), np.arange(len(times), dtype=np.int64))
         return True
+
+    def _can_load(self, times: npt.NDArray[np.float64]) -> bool:
+        """Nothing taken yet, and at least two times, all finite and strictly increasing."""
+        if self.loaded is not None or self.base is not None or len(times) < 2:
+            return False
+        return bool(np.all(np.isfinite(times)) and np.all(np.diff(times) > 0.0))
 
     def feed(self, start: int, stop: int) -> int:
         """Loaded samples [start, stop) have arrived (in order); returns how many steps they complete (with the
