@@ -7,18 +7,20 @@ Wheel order everywhere: front_left, front_right, rear_left, rear_right (the pape
 
 from __future__ import annotations
 
+import ipaddress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
-
-import yaml
 
 from robotd.schema import (
     ConfigError,
     build,
     each,
+    file_mode,
     gpio_pin,
+    host,
     in_range,
+    ip_address,
     non_negative,
     port_number,
     positive,
@@ -27,8 +29,11 @@ from robotd.schema import (
     setting,
 )
 from robotd.simconfig import SimConfig
+from robotd.smallfile import MissingFileError, SmallFileError, read_small_file
+from robotd.yamltext import parse_yaml
 
 WHEELS = ("front_left", "front_right", "rear_left", "rear_right")
+MAX_CONFIG_BYTES = 1 << 20  # robot.yaml is 4 kB; a bound keeps a wrong path (a log, a device) from being read whole
 
 
 def _sign(value: int) -> str | None:
@@ -131,10 +136,20 @@ class MotorsConfig:
 class PigpiodConfig:
     """The pigpio daemon (real on the Pi, virtual in simulation)."""
 
-    host: str = setting("127.0.0.1", "Host of pigpiod (keep it on localhost: pigpiod has no authentication).")
+    host: str = setting("127.0.0.1", "Host of pigpiod (keep it on localhost: pigpiod has no authentication).", host)
     port: int = setting(8888, "TCP port of pigpiod.", port_number)
-    connect_timeout_s: float = setting(2.0, "Give up one connection attempt after this long.", positive)
-    reconnect_max_s: float = setting(5.0, "Longest wait between reconnection attempts (backoff cap).", positive)
+    connect_timeout_s: float = setting(
+        2.0,
+        "Give up one connection attempt after this long; at most 5 s, so `robotd stop-motors` finishes well within"
+        " systemd's stop timeout (10 s).",
+        in_range(0.0, 5.0, above_low=True),
+    )
+    reconnect_max_s: float = setting(
+        5.0,
+        "Longest wait between reconnection attempts (backoff cap); at most 30 s: the motors cannot be driven or"
+        " stopped by robotd while pigpiod is away.",
+        in_range(0.0, 30.0, above_low=True),
+    )
 
 
 def _device_pattern(value: str) -> str | None:
@@ -158,11 +173,21 @@ class MarvelmindConfig:
         "Address of our hedgehog, 0..255, or auto to learn it from the first position frame not flagged as "
         "another hedgehog's (flags bit 6). Frames of other addresses are dropped.",
     )
-    stale_after_s: float = setting(0.3, "A fix is stale after this long without a valid one.", positive)
+    stale_after_s: float = setting(
+        0.3,
+        "A fix is stale after this long without a valid one; at most 5 s: an older fix no longer says where a"
+        " moving robot is.",
+        in_range(0.0, 5.0, above_low=True),
+    )
     default_latency_s: float = setting(
         0.05, "Latency assumed when a frame's time-shift field is 0 (unknown).", in_range(0.0, 5.0)
     )
-    reconnect_max_s: float = setting(2.0, "Longest wait between attempts to reopen a vanished device.", positive)
+    reconnect_max_s: float = setting(
+        2.0,
+        "Longest wait between attempts to reopen a vanished device; at most 30 s (the pose runs on odometry alone"
+        " meanwhile).",
+        in_range(0.0, 30.0, above_low=True),
+    )
 
     def __post_init__(self) -> None:
         if isinstance(self.hedgehog_address, int) and not 0 <= self.hedgehog_address <= 255:
@@ -265,25 +290,50 @@ class EkfConfig:
 class TeleopConfig:
     """UDP teleop: authenticated body-frame velocity commands."""
 
-    bind: str = setting("127.0.0.1", "Address to listen on (0.0.0.0 for a remote control on the network).")
+    bind: str = setting("127.0.0.1", "Address to listen on (0.0.0.0 for a remote control on the network).", ip_address)
     port: int = setting(47800, "UDP port.", port_number)
     key_file: str = setting("/etc/robotd/teleop.key", "File holding the shared HMAC-SHA256 key.")
     allow_unauthenticated: bool = setting(False, "Accept datagrams without a key (loopback simulation only).")
-    deadman_timeout_s: float = setting(0.5, "Stop the motors when no valid command arrived for this long.", positive)
-    max_vx_mps: float = setting(0.6, "Largest forward speed magnitude.", positive)
-    max_vy_mps: float = setting(0.6, "Largest sideways speed magnitude.", positive)
-    max_wz_rad_s: float = setting(2.0, "Largest turn rate magnitude.", positive)
-    max_linear_accel_mps2: float = setting(1.0, "Acceleration limit on vx and vy.", positive)
-    max_angular_accel_rad_s2: float = setting(4.0, "Acceleration limit on wz.", positive)
+    deadman_timeout_s: float = setting(
+        0.5,
+        "Stop the motors when no valid command arrived for this long; at most 5 s: a robot whose remote control is"
+        " gone must not drive on for longer than a person takes to notice.",
+        in_range(0.0, 5.0, above_low=True),
+    )
+    max_vx_mps: float = setting(
+        0.6,
+        "Largest forward speed magnitude; at most 3 m/s (an indoor robot: more is a typo).",
+        in_range(0.0, 3.0, above_low=True),
+    )
+    max_vy_mps: float = setting(
+        0.6, "Largest sideways speed magnitude; at most 3 m/s, as max_vx_mps.", in_range(0.0, 3.0, above_low=True)
+    )
+    max_wz_rad_s: float = setting(
+        2.0,
+        "Largest turn rate magnitude; at most 10 rad/s (more than a turn and a half a second).",
+        in_range(0.0, 10.0, above_low=True),
+    )
+    max_linear_accel_mps2: float = setting(
+        1.0,
+        "Acceleration limit on vx and vy; at most 10 m/s^2 (1 g): the limit is what makes a stop gentle.",
+        in_range(0.0, 10.0, above_low=True),
+    )
+    max_angular_accel_rad_s2: float = setting(
+        4.0,
+        "Acceleration limit on wz; at most 40 rad/s^2, as max_linear_accel_mps2.",
+        in_range(0.0, 40.0, above_low=True),
+    )
     max_datagram_age_s: float = setting(
         0.25,
-        "Drop a datagram delayed this much more than the fastest one of its sender (clock offset estimated).",
-        in_range(0.01, 10.0),
+        "Drop a datagram delayed this much more than the fastest one of its sender (clock offset estimated); at most"
+        " 1 s: an older command is no longer what the operator means.",
+        in_range(0.01, 1.0),
     )
     max_clock_offset_s: float = setting(
         5.0,
-        "Drop a datagram whose sender clock (Unix time) differs from ours by more than this; 0 disables the check.",
-        non_negative,
+        "Drop a datagram whose sender clock (Unix time) differs from ours by more than this; above 0 and at most"
+        " 60 s: a captured datagram can be replayed for this long (keep the clocks in sync with NTP).",
+        in_range(0.0, 60.0, above_low=True),
     )
 
 
@@ -292,34 +342,53 @@ class PoseSocketConfig:
     """The local pose stream: newline-delimited JSON on a Unix socket."""
 
     path: str = setting("/run/robotd/pose.sock", "Path of the Unix socket.")
-    mode: str = setting("0660", "Permissions of the socket file (octal).")
+    mode: str = setting("0660", "Permissions of the socket file (octal).", file_mode)
     rate_hz: float = setting(20.0, "Pose messages per second.", in_range(0.1, 1000.0))
     status_rate_hz: float = setting(
         1.0, "Status messages (driver counters, filter diagnostics) per second.", in_range(0.01, 100.0)
     )
-    client_queue: int = setting(64, "Messages queued per client; a slow client loses the oldest.", in_range(1, 100_000))
-    client_stall_s: float = setting(
-        5.0, "Disconnect a client that has accepted no data for this long while messages wait.", positive
+    client_queue: int = setting(
+        64,
+        "Messages queued per client; a slow client loses the oldest. At most 10000: the queues of max_clients"
+        " stuck clients must fit in the Pi's memory.",
+        in_range(1, 10_000),
     )
-    max_clients: int = setting(16, "Most clients served at once; more are refused.", in_range(1, 1000))
-
-    def __post_init__(self) -> None:
-        try:
-            int(self.mode, 8)
-        except ValueError:
-            raise ValueError(f"mode must be octal permissions such as '0660', got {self.mode!r}") from None
+    client_stall_s: float = setting(
+        5.0,
+        "Disconnect a client that has accepted no data for this long while messages wait; at most 60 s, so a stuck"
+        " client soon frees its place and its queue.",
+        in_range(0.0, 60.0, above_low=True),
+    )
+    max_clients: int = setting(
+        16,
+        "Most clients served at once; more are refused. At most 128 (each costs a queue and a task).",
+        in_range(1, 128),
+    )
 
 
 @dataclass(frozen=True, slots=True)
 class ControlConfig:
     """The motor control loop: wheel speed PID with feed-forward."""
 
-    rate_hz: float = setting(50.0, "Control loop rate.", in_range(1.0, 1000.0))
-    kp: float = setting(0.02, "Proportional gain, duty per rad/s of wheel speed error.", non_negative)
-    ki: float = setting(0.1, "Integral gain, duty per rad of accumulated error.", non_negative)
-    kd: float = setting(0.0, "Derivative gain, duty per rad/s^2.", non_negative)
+    rate_hz: float = setting(
+        50.0,
+        "Control loop rate; at least 10 Hz (the deadman stops the wheels one control period after its timeout) and"
+        " at most 1000 Hz (the Pi's CPU).",
+        in_range(10.0, 1000.0),
+    )
+    kp: float = setting(
+        0.02,
+        "Proportional gain, duty per rad/s of wheel speed error; at most 1 (full duty for 1 rad/s of error already"
+        " makes the wheel oscillate).",
+        in_range(0.0, 1.0),
+    )
+    ki: float = setting(0.1, "Integral gain, duty per rad of accumulated error; at most 10.", in_range(0.0, 10.0))
+    kd: float = setting(0.0, "Derivative gain, duty per rad/s^2; at most 1, as kp.", in_range(0.0, 1.0))
     wheel_max_speed_rad_s: float = setting(
-        20.0, "Wheel speed at full duty; feed-forward duty = set-point / this.", positive
+        20.0,
+        "Wheel speed at full duty; feed-forward duty = set-point / this. Between 1 and 200 rad/s: too small a value"
+        " sends full duty for any command.",
+        in_range(1.0, 200.0),
     )
     integral_limit: float = setting(
         0.5, "Largest duty magnitude the integral term may contribute (anti-windup bound).", in_range(0.0, 1.0)
@@ -357,8 +426,7 @@ def _cross_checks(config: RobotdConfig) -> list[str]:
             problems.append(f"{path}: GPIO {pin} is already used by {owners[pin]}")
         else:
             owners[pin] = path
-    if not config.teleop.allow_unauthenticated and not config.teleop.key_file:
-        problems.append("teleop.key_file: required unless teleop.allow_unauthenticated is true")
+    problems += _teleop_checks(config.teleop)
     if config.pose_socket.rate_hz > config.control.rate_hz * 10:
         problems.append(
             f"pose_socket.rate_hz: must be at most 10x control.rate_hz ({config.control.rate_hz}), "
@@ -367,15 +435,35 @@ def _cross_checks(config: RobotdConfig) -> list[str]:
     return problems
 
 
+def _teleop_checks(teleop: TeleopConfig) -> list[str]:
+    """Who may drive: a key, or no key on loopback only, never both."""
+    if not teleop.allow_unauthenticated:
+        return [] if teleop.key_file else ["teleop.key_file: required unless teleop.allow_unauthenticated is true"]
+    if teleop.key_file:
+        both = f"true together with teleop.key_file ({teleop.key_file}) would let unsigned datagrams drive"
+        fix = "remove allow_unauthenticated, or set key_file: '' to run without a key on loopback"
+        return [f"teleop.allow_unauthenticated: {both}: {fix}"]
+    if not ipaddress.ip_address(teleop.bind).is_loopback:
+        keyless = "teleop without a key (teleop.allow_unauthenticated) must listen on loopback (127.0.0.1 or ::1)"
+        return [f"teleop.bind: {keyless}, got {teleop.bind}: anyone on that network could drive"]
+    return []
+
+
+def read_config_text(path: str | Path) -> str:
+    """The text of a configuration file (a regular file of at most MAX_CONFIG_BYTES), or ConfigError."""
+    try:
+        return read_small_file(path, MAX_CONFIG_BYTES).decode("utf-8")
+    except MissingFileError:
+        raise ConfigError([f"{path}: no such configuration file"]) from None
+    except SmallFileError as error:
+        raise ConfigError([f"{path}: cannot read: {error}"]) from None
+    except UnicodeDecodeError as error:
+        raise ConfigError([f"{path}: cannot read: not UTF-8 text ({error.reason} at byte {error.start})"]) from None
+
+
 def parse(text: str, source: str = "<config>") -> RobotdConfig:
     """Parse YAML text into a validated configuration, or raise ConfigError."""
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(error, "problem", None) or str(error)
-        raise ConfigError([f"{source}: invalid YAML{where}: {problem}"]) from None
+    raw = parse_yaml(text, source)
     if raw is None:
         raw = {}
     if not isinstance(raw, dict):
@@ -389,13 +477,7 @@ def parse(text: str, source: str = "<config>") -> RobotdConfig:
 
 def load(path: str | Path) -> RobotdConfig:
     """Read and validate a configuration file, or raise ConfigError."""
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError([f"{path}: no such configuration file"]) from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise ConfigError([f"{path}: cannot read: {error}"]) from None
-    return parse(text, str(path))
+    return parse(read_config_text(path), str(path))
 
 
 def config_reference() -> str:

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import ipaddress
 import math
+import re
 import types
 import typing
 from collections.abc import Callable, Iterator, Mapping
@@ -64,8 +66,17 @@ def non_negative(value: float) -> str | None:
     return None if value >= 0 else f"must be >= 0, got {_show(value)}"
 
 
-def in_range(low: float, high: float) -> Check:
-    """Between low and high inclusive."""
+def in_range(low: float, high: float, *, above_low: bool = False) -> Check:
+    """Between low and high inclusive; with `above_low`, strictly above low (for limits that must not be zero)."""
+    if above_low:
+
+        def above(value: float) -> str | None:
+            return (
+                None if low < value <= high else f"must be > {_show(low)} and at most {_show(high)}, got {_show(value)}"
+            )
+
+        above.__doc__ = f"Above {_show(low)}, at most {_show(high)}."
+        return above
 
     def check(value: float) -> str | None:
         return None if low <= value <= high else f"must be between {low} and {high}, got {_show(value)}"
@@ -104,6 +115,44 @@ def gpio_pin(value: int) -> str | None:
 def port_number(value: int) -> str | None:
     """A TCP or UDP port."""
     return None if 1 <= value <= 65535 else f"must be a port between 1 and 65535, got {_show(value)}"
+
+
+def ip_address(value: str) -> str | None:
+    """An IPv4 or IPv6 address literal (host names are not resolved)."""
+    try:
+        ipaddress.ip_address(value)
+    except ValueError:
+        return f"must be an IP address such as 127.0.0.1, 0.0.0.0 or ::1, got {value!r}"
+    return None
+
+
+_HOST_LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
+
+
+def host(value: str) -> str | None:
+    """An IP address, or a host name (which must not look like a dotted number)."""
+    if ":" in value or re.fullmatch(r"[0-9.]+", value):  # written as an address: it must be a valid one
+        try:
+            ipaddress.ip_address(value)
+        except ValueError:
+            return f"must be a valid IP address or a host name, got {value!r}"
+        return None
+    labels = value.removesuffix(".").split(".")
+    if len(value) > 253 or not all(_HOST_LABEL.fullmatch(label) for label in labels):
+        return f"must be a valid IP address or a host name, got {value!r}"
+    return None
+
+
+def file_mode(value: str) -> str | None:
+    """Octal permissions (3 or 4 digits) without setuid, setgid or sticky bits, not writable by every user."""
+    if not re.fullmatch(r"[0-7]{3,4}", value):
+        return f"must be octal permissions such as '0660', got {value!r}"
+    mode = int(value, 8)
+    if mode & 0o7000:
+        return f"must not set the setuid, setgid or sticky bits, got {value!r}"
+    if mode & 0o002:
+        return f"must not be writable by every user (the last digit must be 0, 1, 4 or 5), got {value!r}"
+    return None
 
 
 # --- building -------------------------------------------------------------------------------------
@@ -166,10 +215,11 @@ def _convert(tp: Any, value: Any, path: str, problems: list[str]) -> Any:
             return None
         else:
             element_types = list(args)
+        start = len(problems)
         items = [
             _convert(t, v, f"{path}[{i}]", problems) for i, (t, v) in enumerate(zip(element_types, value, strict=True))
         ]
-        return tuple(items)
+        return None if len(problems) > start else tuple(items)  # a bad element spoils the list: no check sees None
     if tp is bool:
         if isinstance(value, bool):
             return value
@@ -241,6 +291,28 @@ def build(cls: type[T], raw: Mapping[Any, Any]) -> T:
     if result is None or problems:
         raise ConfigError(problems)
     return result
+
+
+def build_fields(
+    cls: type[T], raw: Mapping[Any, Any], path: str, base: T, names: tuple[str, ...]
+) -> tuple[T, dict[str, str]]:
+    """`base` with each of `names` found in `raw` that is valid on its own; the others keep `base`'s value.
+
+    Returns the section and, per field that could not be used, its problem line. Keys outside `names` are not read
+    at all, so a mistake elsewhere in the section cannot spoil the fields asked for.
+    """
+    values: dict[str, Any] = {}
+    refused: dict[str, str] = {}
+    for name in names:
+        if name not in raw:
+            continue
+        problems: list[str] = []
+        built = _build(cls, {name: raw[name]}, path, problems, base)
+        if built is None or problems:
+            refused[name] = problems[0] if problems else f"{path}.{name}: unusable"
+        else:
+            values[name] = getattr(built, name)
+    return dataclasses.replace(typing.cast(Any, base), **values), refused
 
 
 # --- documentation --------------------------------------------------------------------------------

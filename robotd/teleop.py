@@ -28,6 +28,7 @@ import hmac
 import logging
 import math
 import secrets
+import stat
 import struct
 import time
 from collections import Counter
@@ -39,6 +40,7 @@ from pathlib import Path
 from robotd.config import TeleopConfig
 from robotd.kinematics import Twist
 from robotd.schema import ConfigError
+from robotd.smallfile import SmallFileError, read_small_file, regular_file
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +51,7 @@ TAG_SIZE = 32
 DATAGRAM_SIZE = _HEADER.size + TAG_SIZE
 _NO_TAG = bytes(TAG_SIZE)
 MIN_KEY_BYTES = 16
+MAX_KEY_FILE_BYTES = 4096  # a key is 16 to a few hundred bytes; a bigger file is the wrong file
 WINDOW = 64  # sequence numbers remembered below the highest, to tell replays from late arrivals
 CLOCK_DRIFT = 1e-3  # s/s the per-session clock offset estimate may rise (1000 ppm covers any NTP slew)
 
@@ -117,14 +120,36 @@ TeleopMessage = TeleopCommand | StopCommand
 
 
 def load_key(path: str | Path) -> bytes:
-    """The shared key from a key file (surrounding whitespace removed), or ConfigError."""
+    """The shared key from a key file (surrounding whitespace removed), or ConfigError; never blocks (FIFO, device)."""
     try:
-        key = Path(path).read_bytes().strip()
-    except OSError as error:
-        raise ConfigError([f"teleop.key_file: cannot read {path}: {error.strerror or error}"]) from None
+        key = read_small_file(path, MAX_KEY_FILE_BYTES).strip()
+    except SmallFileError as error:
+        raise ConfigError([f"teleop.key_file: cannot read {path}: {error}"]) from None
     if len(key) < MIN_KEY_BYTES:
         raise ConfigError([f"teleop.key_file: {path} holds {len(key)} bytes; a key needs at least {MIN_KEY_BYTES}"])
     return key
+
+
+def check_key_file(path: str | Path) -> list[str]:
+    """Problems of the daemon's key file: unreadable, not a regular file, a bad key, or readable by other users.
+
+    As for PostgreSQL's key files: a key owned by root may be shared with the daemon's group (0640), any other
+    owner must keep it to itself (0600); nobody else may read or write it.
+    """
+    try:
+        info = regular_file(path)
+    except SmallFileError as error:
+        return [f"teleop.key_file: cannot read {path}: {error}"]
+    allowed = 0o640 if info.st_uid == 0 else 0o600
+    mode = stat.S_IMODE(info.st_mode)
+    if mode & ~allowed:
+        exposed = f"{path} has mode {mode:04o}, so other users can read or change the key"
+        return [f"teleop.key_file: {exposed}: run `chmod {allowed:04o} {path}`"]
+    try:
+        load_key(path)
+    except ConfigError as error:
+        return error.problems
+    return []
 
 
 def _tag(key: bytes, header: bytes) -> bytes:

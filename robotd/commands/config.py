@@ -14,6 +14,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     """Add the configuration sub-commands."""
     check = subparsers.add_parser("check-config", help="validate a configuration file (exit 78 when it is bad)")
     check.add_argument("path", help="YAML configuration file")
+    check.add_argument(
+        "--schema-only",
+        action="store_true",
+        help="check the file alone, not the key file and address it names (for a configuration of another machine)",
+    )
     check.set_defaults(handler=check_config)
     ref = subparsers.add_parser("config-reference", help="print the Markdown reference of every configuration key")
     ref.set_defaults(handler=print_reference)
@@ -24,8 +29,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def check_config(args: argparse.Namespace) -> int:
-    """Validate the file named on the command line; errors surface as ConfigError (exit 78)."""
-    load(args.path)
+    """Validate the file, then what it names on this host (as `robotd run` does); errors are ConfigError (exit 78)."""
+    from robotd.preflight import preflight  # noqa: PLC0415 - keeps `robotd --help` fast (imports teleop)
+
+    config = load(args.path)
+    if not args.schema_only:
+        preflight(config)
     print(f"{args.path}: ok")
     return 0
 

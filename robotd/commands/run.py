@@ -30,7 +30,9 @@ def configure_logging(verbose: bool) -> None:
 def run_daemon_command(args: argparse.Namespace) -> int:
     """Validate the configuration (exit 78 when bad), then run the daemon until stopped."""
     from robotd.daemon import run_daemon  # noqa: PLC0415 - keeps `robotd --help` fast
+    from robotd.preflight import preflight  # noqa: PLC0415
 
     config = load(args.config)
+    preflight(config)  # the key file and the bind address, as `robotd check-config` checks them
     configure_logging(args.verbose)
     return run_daemon(config, Path(args.record) if args.record else None)

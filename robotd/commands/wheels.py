@@ -10,6 +10,7 @@ import time
 
 from drivers.pigpio_link import PigpiodUnavailableError
 from robotd.config import RobotdConfig, load
+from robotd.motorpins import read_stop_targets
 
 EX_UNAVAILABLE = 69
 
@@ -20,7 +21,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "stop-motors", help="drive every motor pin low through pigpiod (systemd ExecStopPost; no daemon needed)"
     )
     stop.add_argument(
-        "--config", metavar="PATH", help="configuration with the motor pins and pigpiod (default: built-in)"
+        "--config",
+        metavar="PATH",
+        help="configuration with the motor pins and pigpiod (default: built-in); any field it cannot read is"
+        " replaced by its built-in value, with a line on stderr",
     )
     stop.set_defaults(handler=stop_motors)
 
@@ -47,16 +51,18 @@ def _config(path: str | None) -> RobotdConfig:
 
 
 def stop_motors(args: argparse.Namespace) -> int:
-    """Zero every motor through pigpiod; exit 69 when pigpiod is unreachable."""
+    """Zero every motor through pigpiod with the pins it can read (defaults for the rest); 69: pigpiod unreachable."""
     from drivers.motors import stop_all_motors  # noqa: PLC0415 - keep `robotd --help` fast
 
-    config = _config(args.config)
+    targets = read_stop_targets(args.config)  # never refuses: a broken file still leaves the pins it can read
+    for fallback in targets.fallbacks:
+        print(f"robotd stop-motors: {fallback}", file=sys.stderr)
     try:
-        stop_all_motors(config.motors, config.pigpiod)
+        stop_all_motors(targets.motors, targets.pigpiod)
     except PigpiodUnavailableError as error:
         print(f"robotd stop-motors: {error}", file=sys.stderr)
         return EX_UNAVAILABLE
-    print(f"robotd stop-motors: all motor pins low on {config.pigpiod.host}:{config.pigpiod.port}")
+    print(f"robotd stop-motors: all motor pins low on {targets.pigpiod.host}:{targets.pigpiod.port}")
     return 0
 
 

@@ -32,7 +32,7 @@ RULES = [
         "positive",
         "teleop: {deadman_timeout_s: 0.2}",
         "teleop: {deadman_timeout_s: -1}",
-        "teleop.deadman_timeout_s: must be > 0, got -1",
+        "teleop.deadman_timeout_s: must be > 0 and at most 5, got -1",
     ),
     (
         "positive rejects zero",
@@ -40,7 +40,12 @@ RULES = [
         "robot: {wheel_radius_m: 0}",
         "robot.wheel_radius_m: must be > 0, got 0",
     ),
-    ("non-negative", "control: {kd: 0}", "control: {kd: -0.5}", "control.kd: must be >= 0, got -0.5"),
+    (
+        "non-negative",
+        "ekf: {odom_along_sigma_m: 0}",
+        "ekf: {odom_along_sigma_m: -0.5}",
+        "ekf.odom_along_sigma_m: must be >= 0, got -0.5",
+    ),
     ("in range", "control: {rate_hz: 100}", "control: {rate_hz: 5000}", "control.rate_hz: must be between"),
     (
         "gpio pin",
@@ -74,7 +79,37 @@ RULES = [
         "marvelmind: {hedgehog_address: 300}",
         "marvelmind: hedgehog_address must be between 0 and 255",
     ),
-    ("octal mode", "pose_socket: {mode: '0640'}", "pose_socket: {mode: '0999'}", "pose_socket: mode must be octal"),
+    (
+        "octal mode",
+        "pose_socket: {mode: '0640'}",
+        "pose_socket: {mode: '0999'}",
+        "pose_socket.mode: must be octal permissions",
+    ),
+    (
+        "numeric list element",
+        "ekf: {initial_pose: [1, 2, 0.5]}",
+        "ekf: {initial_pose: [1, two, 0.5]}",
+        "ekf.initial_pose[1]: expected a number, got string 'two'",
+    ),
+    (
+        "no key with a key file",
+        "teleop: {allow_unauthenticated: true, key_file: ''}",
+        "teleop: {allow_unauthenticated: true}",
+        "teleop.allow_unauthenticated: true together with teleop.key_file (/etc/robotd/teleop.key)",
+    ),
+    (
+        "no key off loopback",
+        "teleop: {allow_unauthenticated: true, key_file: '', bind: '::1'}",
+        "teleop: {allow_unauthenticated: true, key_file: '', bind: 10.0.0.5}",
+        "teleop.bind: teleop without a key (teleop.allow_unauthenticated) must listen on loopback",
+    ),
+    ("bind literal", "teleop: {bind: '::'}", "teleop: {bind: 10.0.0.256}", "teleop.bind: must be an IP address"),
+    (
+        "pigpiod host",
+        "pigpiod: {host: pi-4.lan}",
+        "pigpiod: {host: 'pi 4'}",
+        "pigpiod.host: must be a valid IP address or a host name",
+    ),
     (
         "number type",
         "teleop: {max_vx_mps: 1}",
@@ -185,9 +220,16 @@ def test_missing_file(tmp_path: Path) -> None:
         load(tmp_path / "absent.yaml")
 
 
-@pytest.mark.parametrize("name", ["robot.yaml", "sim.yaml"])
-def test_shipped_configurations_are_valid(name: str) -> None:
-    assert main(["check-config", str(REPO / "config" / name)]) == 0
+def test_shipped_configurations_are_valid(tmp_path: Path) -> None:
+    assert main(["check-config", str(REPO / "config" / "sim.yaml")]) == 0
+    robot = REPO / "config" / "robot.yaml"
+    assert main(["check-config", "--schema-only", str(robot)]) == 0  # its key file lives on the robot
+    key = tmp_path / "teleop.key"
+    key.write_bytes(b"0123456789abcdef0123456789abcdef\n")
+    key.chmod(0o600)
+    here = tmp_path / "robot.yaml"
+    here.write_text(robot.read_text().replace("/etc/robotd/teleop.key", str(key)))
+    assert main(["check-config", str(here)]) == 0
 
 
 def test_shipped_robot_configuration_documents_every_section() -> None:
@@ -210,6 +252,88 @@ def test_bad_configuration_exits_78_with_one_line_per_problem_and_no_traceback(t
     joined = "\n".join(lines)
     for path in ("teleop.deadman_timeout_s", "teleop.max_vx_mps", "robot.wheel_radus_m"):
         assert f": {path}: " in joined
+
+
+# Every safety limit and its upper bound (item 5 of issue 12): (dotted path, the bound itself, a value beyond it)
+UPPER_BOUNDS = [
+    ("teleop.deadman_timeout_s", 5.0, 1.0e9),
+    ("teleop.max_vx_mps", 3.0, 3.5),
+    ("teleop.max_vy_mps", 3.0, 3.5),
+    ("teleop.max_wz_rad_s", 10.0, 11.0),
+    ("teleop.max_linear_accel_mps2", 10.0, 11.0),
+    ("teleop.max_angular_accel_rad_s2", 40.0, 41.0),
+    ("teleop.max_datagram_age_s", 1.0, 1.5),
+    ("teleop.max_clock_offset_s", 60.0, 61.0),
+    ("control.rate_hz", 1000.0, 1001.0),
+    ("control.kp", 1.0, 1.5),
+    ("control.ki", 10.0, 11.0),
+    ("control.kd", 1.0, 1.5),
+    ("control.wheel_max_speed_rad_s", 200.0, 201.0),
+    ("control.integral_limit", 1.0, 1.5),
+    ("motors.duty_limit", 1.0, 1.01),
+    ("pose_socket.client_stall_s", 60.0, 61.0),
+    ("pose_socket.client_queue", 10_000, 10_001),
+    ("pose_socket.max_clients", 128, 129),
+    ("marvelmind.stale_after_s", 5.0, 6.0),
+    ("marvelmind.reconnect_max_s", 30.0, 31.0),
+    ("pigpiod.connect_timeout_s", 5.0, 6.0),
+    ("pigpiod.reconnect_max_s", 30.0, 31.0),
+]
+
+
+def _setting(dotted: str, value: object) -> str:
+    section, key = dotted.split(".")
+    return f"{section}: {{{key}: {value}}}"
+
+
+@pytest.mark.parametrize(("dotted", "bound", "beyond"), UPPER_BOUNDS, ids=[b[0] for b in UPPER_BOUNDS])
+def test_every_safety_limit_has_an_upper_bound(dotted: str, bound: float, beyond: float) -> None:
+    assert problems_of(_setting(dotted, bound)) == []
+    problems = problems_of(_setting(dotted, beyond))
+    assert len(problems) == 1, problems
+    assert problems[0].startswith(f"{dotted}: must be "), problems[0]
+    assert "at most" in problems[0] or "between" in problems[0]
+
+
+@pytest.mark.parametrize(
+    ("dotted", "floor"),
+    [
+        ("teleop.max_clock_offset_s", 0),
+        ("teleop.deadman_timeout_s", 0),
+        ("control.rate_hz", 5),
+        ("control.wheel_max_speed_rad_s", 0.5),
+    ],
+)
+def test_limits_that_must_not_be_zero_or_tiny(dotted: str, floor: float) -> None:
+    problems = problems_of(_setting(dotted, floor))
+    assert len(problems) == 1, problems
+    assert problems[0].startswith(f"{dotted}: must be "), problems[0]
+
+
+def test_each_bound_has_its_reason_in_the_reference() -> None:
+    text = config_reference()
+    for dotted, _bound, _beyond in UPPER_BOUNDS:
+        row = next(line for line in text.splitlines() if line.startswith(f"| `{dotted}` |"))
+        assert "at most" in row or "Between" in row or "between" in row, row
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("a: &x 1\nteleop: {port: *x}", "line 2, column 16: aliases (*name) are not accepted"),
+        ("teleop: {port: !!int '47800'}", "line 1, column 16: tags (!name, !!name) are not accepted"),
+        ("robot: {ips_offset_m: !!timestamp x}", "tags (!name, !!name) are not accepted"),
+        ("a: " + "[" * 40 + "]" * 40, "nested deeper than 32 levels"),
+        ("sim: {seed: " + "9" * 5000 + "}", "invalid YAML: Exceeds the limit (4300 digits) for integer string"),
+        ("sim: {record_path: 2001-13-01}", "invalid YAML: month must be in 1..12"),
+    ],
+    ids=["alias", "tag", "crashing tag", "deep nesting", "endless integer", "impossible date"],
+)
+def test_yaml_that_would_explode_or_crash_is_one_line(text: str, reason: str) -> None:
+    problems = problems_of(text)
+    assert len(problems) == 1, problems
+    assert problems[0].startswith("<config>: invalid YAML"), problems[0]
+    assert reason in problems[0], problems[0]
 
 
 def test_reference_lists_every_key_with_its_real_default() -> None:
