@@ -391,7 +391,9 @@ class ControlConfig:
         in_range(1.0, 200.0),
     )
     integral_limit: float = setting(
-        0.5, "Largest duty magnitude the integral term may contribute (anti-windup bound).", in_range(0.0, 1.0)
+        0.5,
+        "Largest duty magnitude the integral term may contribute (anti-windup bound); at most 1, full duty.",
+        in_range(0.0, 1.0),
     )
 
 
