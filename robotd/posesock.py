@@ -4,7 +4,8 @@ Theory of operation. Message builders are pure functions returning plain dicts. 
 message once and appends it to every client's queue without awaiting anything, so the producer (the control and
 filter loops) is never delayed by a client. Each client has a writer task that moves its queue into the socket;
 a queue is a bounded deque, so a slow client loses its oldest messages, and a client whose socket accepts nothing
-for `stall_s` while messages wait is disconnected. Every client receives the `hello` message first.
+for `stall_s` while messages wait is disconnected. Every client receives the `hello` message first; a client beyond
+`max_clients` receives one `error` message instead, then the close.
 """
 
 from __future__ import annotations
@@ -87,6 +88,11 @@ def status_message(
         "drivers": {name: dict(counters) for name, counters in drivers.items()},
         "filter": dict(filter_diagnostics),
     }
+
+
+def error_message(error: str) -> dict[str, Any]:
+    """Why the server is about to close this client's connection."""
+    return {"type": "error", "error": error}
 
 
 def encode(message: Mapping[str, Any]) -> bytes:
@@ -181,6 +187,8 @@ class PoseServer:
         assert task is not None
         if len(self._clients) >= self.max_clients:
             self.counters["refused"] += 1
+            # one line saying why before the close, so the client's user is not left guessing at an empty stream
+            writer.write(encode(error_message(f"too many clients (max {self.max_clients})")))
             writer.close()
             with contextlib.suppress(OSError):
                 await writer.wait_closed()
