@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import logging
 import math
 import os
 import socket
@@ -152,6 +153,26 @@ async def test_a_stale_socket_file_is_replaced_but_a_live_one_is_not(short_dir: 
     path.write_text("not a socket")
     with pytest.raises(FileExistsError, match="not a socket"):
         await PoseServer(path).start()
+
+
+async def test_closing_with_clients_connected_ends_their_streams_without_an_error(
+    short_dir: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = short_dir / "pose.sock"
+    server = PoseServer(path)
+    await server.start()
+    reader, writer = await asyncio.open_unix_connection(str(path))
+    try:
+        assert (await read_line(reader))["type"] == "hello"
+        await server.close()
+        assert await asyncio.wait_for(reader.read(), 2.0) == b""
+        for _ in range(3):  # let asyncio run the connection's done-callbacks
+            await asyncio.sleep(0)
+    finally:
+        writer.close()
+        await writer.wait_closed()
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
+    assert not path.exists()
 
 
 async def test_clients_beyond_the_limit_get_one_error_line_then_the_close(short_dir: Path) -> None:
