@@ -178,7 +178,10 @@ def _float(obj: dict[str, Any], key: str, default: float | None = None) -> float
     value = obj.get(key, default)
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise _MalformedError(f"'{key}' must be a number, got {value!r}")
-    return float(value)
+    try:
+        return float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        raise _MalformedError(f"'{key}' is a number beyond any double") from None
 
 
 def _decode(obj: dict[str, Any]) -> Event | Meta | str:
@@ -272,6 +275,9 @@ def _parse(text: bytes, originals: list[str] | None) -> SensorLog:
                 raise _MalformedError("'ticks' must be 64-bit integers")
         except (json.JSONDecodeError, _MalformedError) as error:
             log.problems.append(f"line {index + 1}: {error}")
+            continue
+        except ValueError:  # json reads integers with int(), which refuses more than 4300 digits
+            log.problems.append(f"line {index + 1}: a number too long to read (over 4300 digits)")
             continue
         except RecursionError:  # json's decoder recurses once per level of nesting
             log.problems.append(f"line {index + 1}: JSON nested too deeply")
