@@ -43,6 +43,7 @@ def start_sim(out: Path) -> tuple[subprocess.Popen[str], Path]:
         proc = subprocess.Popen(
             [sys.executable, "-m", "robotd", "sim", "--config", str(SIM_CONFIG), "--out", str(out)],
             stdout=stream, stderr=subprocess.STDOUT, text=True, cwd=REPO,
+            start_new_session=True,  # its own process group, as a shell gives a foreground job
         )  # fmt: skip
     return proc, output
 

@@ -26,14 +26,25 @@ def out() -> Iterator[Path]:
             os.kill(pid, signal.SIGKILL)
 
 
-@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+@pytest.mark.parametrize(
+    ("signum", "to_the_group"),
+    [
+        (signal.SIGTERM, False),  # kill PID
+        (signal.SIGHUP, True),  # the terminal hangs up: its foreground process group gets SIGHUP
+        (signal.SIGINT, True),  # Ctrl-C: the same, with SIGINT
+    ],
+    ids=["kill", "terminal-hang-up", "ctrl-c"],
+)
 def test_a_stop_signal_stops_the_daemon_then_the_virtual_robot_and_leaves_no_process(
-    out: Path, signum: signal.Signals
+    out: Path, signum: signal.Signals, to_the_group: bool
 ) -> None:
     proc, output = start_sim(out)
     wait_for_output(proc, output, READY)
     assert len(set(processes_mentioning(str(out))) - {proc.pid}) == 2  # the virtual robot and the daemon
-    proc.send_signal(signum)
+    if to_the_group:
+        os.killpg(proc.pid, signum)
+    else:
+        proc.send_signal(signum)
     assert proc.wait(60) == 0, output.read_text()
     text = output.read_text()
     # the daemon first (it zeroes the motors while the virtual pigpiod still listens), both stopped by their SIGTERM
