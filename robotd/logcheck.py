@@ -80,11 +80,9 @@ def check(log: SensorLog, counts_per_rev: int) -> tuple[SensorLog, list[str]]:
     _check_values(columns, times, bad)
     keep = np.ones(count, dtype=np.bool_)
     keep[list(bad)] = False
-    try:
-        _check_order(times, keep, where)
-    except LogRefusedError as refusal:
-        refusal.problems = _problems(bad, where)
-        raise
+    backwards = _backwards(times, keep, where)
+    if backwards is not None:
+        raise LogRefusedError(backwards, _problems(bad, where))
     _check_wheels(columns, times, keep, counts_per_rev, bad)
     keep[list(bad)] = False
     problems = _problems(bad, where)
@@ -156,17 +154,17 @@ def _out_of_bounds(name: str, value: float) -> str:
     return f"'{name}' = {value!r} is not {what}"
 
 
-def _check_order(times: npt.NDArray[np.float64], keep: npt.NDArray[np.bool_], where: _Where) -> None:
-    """LogRefusedError at the first kept event earlier than the kept one before it."""
+def _backwards(times: npt.NDArray[np.float64], keep: npt.NDArray[np.bool_], where: _Where) -> str | None:
+    """Where the first kept event is earlier than the kept one before it (None when the times never go back)."""
     kept = np.flatnonzero(keep)
     back = np.flatnonzero(np.diff(times[kept]) < 0)
-    if len(back):
-        before, after = int(kept[back[0]]), int(kept[back[0] + 1])
-        raise LogRefusedError(
-            f"{where(after)}: time goes backwards, t = {times[after]:.6f} s after t = {times[before]:.6f} s on "
-            f"{where(before)}: a sensor log is in arrival order (is it a merge of logs? sort it by t)",
-            [],
-        )
+    if not len(back):
+        return None
+    before, after = int(kept[back[0]]), int(kept[back[0] + 1])
+    return (
+        f"{where(after)}: time goes backwards, t = {times[after]:.6f} s after t = {times[before]:.6f} s on "
+        f"{where(before)}: a sensor log is in arrival order (is it a merge of logs? sort it by t)"
+    )
 
 
 def _check_wheels(
