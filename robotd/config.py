@@ -157,6 +157,16 @@ def _device_pattern(value: str) -> str | None:
     return None if value.strip() else "must name a serial device (a path or a glob), got an empty string"
 
 
+def _map_bounds(value: tuple[float, ...]) -> str | None:
+    """Empty, or [xmin, ymin, xmax, ymax] with xmin < xmax and ymin < ymax."""
+    if not value or any(v is None for v in value):  # (None: an element already reported as not a number)
+        return None
+    if len(value) != 4:
+        return f"must be empty or [xmin, ymin, xmax, ymax], got {len(value)} numbers"
+    xmin, ymin, xmax, ymax = value
+    return None if xmin < xmax and ymin < ymax else f"needs xmin < xmax and ymin < ymax, got {list(value)}"
+
+
 @dataclass(frozen=True, slots=True)
 class MarvelmindConfig:
     """The Marvelmind hedgehog on a serial port."""
@@ -187,6 +197,25 @@ class MarvelmindConfig:
         "Longest wait between attempts to reopen a vanished device; at most 30 s (the pose runs on odometry alone"
         " meanwhile).",
         in_range(0.0, 30.0, above_low=True),
+    )
+    relatch_after_s: float = setting(
+        2.0,
+        "With hedgehog_address auto: follow another address once ours has sent no position for this long while the "
+        "other streams (a hedgehog swapped behind a port that stayed open). A reopened port always learns the "
+        "address again from its first position frame.",
+        in_range(0.1, 3600.0),
+    )
+    map_bounds_m: tuple[float, ...] = setting(
+        (),
+        "[xmin, ymin, xmax, ymax] of the map (m): fixes outside are refused and counted (outside_map), never fused. "
+        "Empty: the stationary beacons' bounding box grown by map_margin_m, once the hedgehog reports the beacons.",
+        _map_bounds,
+    )
+    map_margin_m: float = setting(
+        3.0,
+        "Margin around the stationary beacons' bounding box (codes 0x0002, 0x0012) beyond which fixes are refused, "
+        "when map_bounds_m is empty.",
+        in_range(0.0, 1000.0),
     )
 
     def __post_init__(self) -> None:

@@ -124,10 +124,11 @@ class SensorLog:
     """A parsed log: its meta, its events in file order, and what could not be used.
 
     The events are held as objects (`events`) or as columns (`columns()`, what replay reads); each view is built from
-    the other on first use.
+    the other on first use. `lines` holds the file's line number (from 1) of each event, in file order, for a log
+    read from a file (None otherwise, and after `events` is assigned).
     """
 
-    __slots__ = ("_columns", "_events", "meta", "problems", "unknown_types")
+    __slots__ = ("_columns", "_events", "lines", "meta", "problems", "unknown_types")
 
     def __init__(
         self,
@@ -137,8 +138,10 @@ class SensorLog:
         unknown_types: Counter[str] | None = None,
         *,
         columns: Columns | None = None,
+        lines: npt.NDArray[np.int64] | None = None,
     ) -> None:
         self.meta = meta if meta is not None else Meta()
+        self.lines = lines
         self._events = events if events is not None or columns is not None else []
         self._columns = columns
         self.problems = problems if problems is not None else []
@@ -155,7 +158,7 @@ class SensorLog:
 
     @events.setter
     def events(self, events: list[Event]) -> None:
-        self._events, self._columns = events, None
+        self._events, self._columns, self.lines = events, None, None
 
     def columns(self) -> Columns:
         """The events as columns (built from the objects when the log was made from them)."""
@@ -175,7 +178,10 @@ def _float(obj: dict[str, Any], key: str, default: float | None = None) -> float
     value = obj.get(key, default)
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise _MalformedError(f"'{key}' must be a number, got {value!r}")
-    return float(value)
+    try:
+        return float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        raise _MalformedError(f"'{key}' is a number beyond any double") from None
 
 
 def _decode(obj: dict[str, Any]) -> Event | Meta | str:
@@ -270,6 +276,12 @@ def _parse(text: bytes, originals: list[str] | None) -> SensorLog:
         except (json.JSONDecodeError, _MalformedError) as error:
             log.problems.append(f"line {index + 1}: {error}")
             continue
+        except ValueError:  # json reads integers with int(), which refuses more than 4300 digits
+            log.problems.append(f"line {index + 1}: a number too long to read (over 4300 digits)")
+            continue
+        except RecursionError:  # json's decoder recurses once per level of nesting
+            log.problems.append(f"line {index + 1}: JSON nested too deeply")
+            continue
         if item is None:
             continue
         if isinstance(item, str):
@@ -302,8 +314,10 @@ def _parse(text: bytes, originals: list[str] | None) -> SensorLog:
             [i for i, _ in extra_truth],
             (truth, np.array([(e.t, e.x, e.y, e.theta) for _, e in extra_truth])),
         )
-    columns = Columns(kinds[kinds >= 0], wheels_t, wheels_ticks, truth, others)
-    return SensorLog(log.meta, None, log.problems, log.unknown_types, columns=columns)
+    is_event = kinds >= 0
+    columns = Columns(kinds[is_event], wheels_t, wheels_ticks, truth, others)
+    lines = np.flatnonzero(is_event).astype(np.int64) + 1
+    return SensorLog(log.meta, None, log.problems, log.unknown_types, columns=columns, lines=lines)
 
 
 def _others(kinds: npt.NDArray[np.int8], bulk: logbulk.Bulk, extra: list[tuple[int, Event]]) -> list[Event]:

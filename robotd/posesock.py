@@ -4,7 +4,8 @@ Theory of operation. Message builders are pure functions returning plain dicts. 
 message once and appends it to every client's queue without awaiting anything, so the producer (the control and
 filter loops) is never delayed by a client. Each client has a writer task that moves its queue into the socket;
 a queue is a bounded deque, so a slow client loses its oldest messages, and a client whose socket accepts nothing
-for `stall_s` while messages wait is disconnected. Every client receives the `hello` message first.
+for `stall_s` while messages wait is disconnected. Every client receives the `hello` message first; a client beyond
+`max_clients` receives one `error` message instead, then the close.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ log = logging.getLogger(__name__)
 
 PROTOCOL = "robotd-pose"
 PROTOCOL_VERSION = 1
+CLOSE_TIMEOUT_S = 1.0  # a client's task still running this long after close() is cancelled
 
 
 def hello_message(rate_hz: float, status_rate_hz: float) -> dict[str, Any]:
@@ -89,6 +91,11 @@ def status_message(
     }
 
 
+def error_message(error: str) -> dict[str, Any]:
+    """Why the server is about to close this client's connection."""
+    return {"type": "error", "error": error}
+
+
 def encode(message: Mapping[str, Any]) -> bytes:
     """One JSON line; non-finite numbers become null (JSON has no NaN)."""
     return json.dumps(_finite(message), separators=(",", ":"), allow_nan=False).encode() + b"\n"
@@ -134,6 +141,7 @@ class PoseServer:
         self.max_clients = max_clients
         self._server: asyncio.AbstractServer | None = None
         self._clients: dict[asyncio.Task[None], _Client] = {}
+        self._closing = asyncio.Event()
         self.counters = {"connected": 0, "refused": 0, "dropped_messages": 0, "stalled": 0, "published": 0}
 
     @property
@@ -145,6 +153,7 @@ class PoseServer:
         """Listen on the socket path (removing a stale socket left by a crash), with the configured mode."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
         _remove_stale_socket(self.path)
+        self._closing.clear()
         self._server = await asyncio.start_unix_server(self._serve, path=str(self.path))
         os.chmod(self.path, self.mode)
 
@@ -166,10 +175,15 @@ class PoseServer:
         """Disconnect every client, stop listening and remove the socket file."""
         if self._server is not None:
             self._server.close()
+        # Each client's task is asked to end rather than cancelled: asyncio's stream callback (Python 3.11) asks a
+        # cancelled connection task for its exception, which raises and logs a traceback at every stop.
+        self._closing.set()
         tasks = list(self._clients)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        if tasks:
+            _, stuck = await asyncio.wait(tasks, timeout=CLOSE_TIMEOUT_S)
+            for task in stuck:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
         if self._server is not None:
             await self._server.wait_closed()
             self._server = None
@@ -181,6 +195,8 @@ class PoseServer:
         assert task is not None
         if len(self._clients) >= self.max_clients:
             self.counters["refused"] += 1
+            # one line saying why before the close, so the client's user is not left guessing at an empty stream
+            writer.write(encode(error_message(f"too many clients (max {self.max_clients})")))
             writer.close()
             with contextlib.suppress(OSError):
                 await writer.wait_closed()
@@ -190,14 +206,17 @@ class PoseServer:
         self._clients[task] = client
         self.counters["connected"] += 1
         try:
-            sending = asyncio.ensure_future(self._send(client, writer))
-            hanging_up = asyncio.ensure_future(_until_eof(reader))
+            parts = (
+                asyncio.ensure_future(self._send(client, writer)),
+                asyncio.ensure_future(_until_eof(reader)),
+                asyncio.ensure_future(self._closing.wait()),
+            )
             try:
-                await asyncio.wait((sending, hanging_up), return_when=asyncio.FIRST_COMPLETED)
+                await asyncio.wait(parts, return_when=asyncio.FIRST_COMPLETED)
             finally:
-                for part in (sending, hanging_up):
+                for part in parts:
                     part.cancel()
-                await asyncio.gather(sending, hanging_up, return_exceptions=True)
+                await asyncio.gather(*parts, return_exceptions=True)
         finally:
             del self._clients[task]
             writer.close()

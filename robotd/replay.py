@@ -91,29 +91,34 @@ def robot_from_log(
     robot = log.meta.robot
     problems: list[str] = []
 
-    def number(key: str, default: float) -> float:
+    def number(key: str, default: float, low: float, high: float) -> float:
+        # bounds no robot leaves: a log's meta is data, and 1e300 or 0.5 counts a turn would wreck the replay
         value = robot.get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
-            problems.append(f"meta.robot.{key}: must be a positive number, got {value!r}; using {default}")
+        if isinstance(value, bool) or not isinstance(value, int | float) or not low <= value <= high:
+            problems.append(
+                f"meta.robot.{key}: must be a number from {low:g} to {high:g}, got {value!r}; using {default}"
+            )
             return default
         return float(value)
 
     geometry = kinematics.Geometry(
-        number("wheel_radius", config.robot.wheel_radius_m),
-        number("lx", config.robot.lx_m),
-        number("ly", config.robot.ly_m),
+        number("wheel_radius", config.robot.wheel_radius_m, 1e-3, 10.0),
+        number("lx", config.robot.lx_m, 1e-3, 100.0),
+        number("ly", config.robot.ly_m, 1e-3, 100.0),
     )
-    cpr = int(number("counts_per_rev", config.encoders.counts_per_rev))
+    cpr = int(number("counts_per_rev", config.encoders.counts_per_rev, 1.0, 1e9))
     offset = config.robot.ips_offset_m
     raw = robot.get("ips_offset", list(offset))
     if (
         isinstance(raw, list)
         and len(raw) == 2
-        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in raw)
+        and all(isinstance(v, int | float) and not isinstance(v, bool) and abs(v) <= 100.0 for v in raw)
     ):
         offset = (float(raw[0]), float(raw[1]))
     else:
-        problems.append(f"meta.robot.ips_offset: must be a list of 2 numbers, got {raw!r}; using {list(offset)}")
+        problems.append(
+            f"meta.robot.ips_offset: must be a list of 2 numbers within ±100, got {raw!r}; using {list(offset)}"
+        )
     return geometry, offset, cpr, problems
 
 

@@ -174,7 +174,7 @@ def event_as_dict(event: Event) -> dict[str, object]:
 
 @dataclass(slots=True)
 class Counters:
-    """What the parser has seen: every byte is either in a frame or counted as junk."""
+    """What the parser has seen (every byte is either in a frame or counted as junk), and the reader's map refusals."""
 
     frames_by_code: dict[int, int] = field(default_factory=dict)  # frames with a valid CRC, before any filtering
     crc_failures: int = 0
@@ -186,6 +186,8 @@ class Counters:
     unavailable_fixes: int = 0
     other_address: int = 0  # frames for another hedgehog (flags bit 6 or another address)
     duplicates: int = 0  # same timestamp as the previous frame of its kind
+    address_changes: int = 0  # under auto: our hedgehog's address learnt again as another one
+    outside_map: int = 0  # fixes refused by the reader as outside the map (drivers.marvelmind.mapbound)
 
     @property
     def frames(self) -> int:

@@ -5,7 +5,10 @@ marvelmind-protocol.md) into an event in SI units and applies the semantics the 
 - flags bit 0 ("coordinates unavailable") yields `FixUnavailable`, never a `Position`;
 - flags bit 1 selects the timestamp unit (1 = ms, 0 = 1/64 s, firmware before 5.20);
 - flags bit 6 (data for another hedgehog) and, once known, any address other than our hedgehog's drop the frame.
-  With `hedgehog_address="auto"` the address is learnt from the first position frame without bit 6;
+  With `hedgehog_address="auto"` the address is learnt from the first position frame without bit 6, and learnt again
+  (re-latched) when our hedgehog has sent no position frame for `relatch_after_s` while another address sent
+  RELATCH_FRAMES of them without bit 6 (a hedgehog swapped on a port that never closed); `forget_address()` makes the
+  next position frame teach it (the reader calls it when the port is reopened: another device may be behind it);
 - a frame whose timestamp equals the previous one of its kind is a duplicate and dropped;
 - `t_meas = arrival - time_shift`, or `arrival - default_latency_s` when the time-shift field is 0 (unknown).
 No serial port, no asyncio, no clock: the caller passes the arrival time of each piece of bytes.
@@ -78,20 +81,34 @@ FUSION_POSITION_NA, FUSION_QUATERNION_NA, FUSION_VELOCITY_NA, FUSION_ACCEL_NA = 
 ITEM_NA = 0x01  # raw distance item, stationary beacon (0x0012)
 
 Decoder = Callable[[int, bytes, float], Event | None]
+RELATCH_FRAMES = 3  # one stray frame of another address is not a hedgehog that streams
 
 
 class MarvelmindParser:
     """Bytes of a hedgehog's (or modem's) stream in, events of our hedgehog out."""
 
-    def __init__(self, hedgehog_address: int | Literal["auto"] = "auto", default_latency_s: float = 0.05) -> None:
+    def __init__(
+        self,
+        hedgehog_address: int | Literal["auto"] = "auto",
+        default_latency_s: float = 0.05,
+        relatch_after_s: float = 2.0,
+    ) -> None:
         if hedgehog_address != "auto" and not (isinstance(hedgehog_address, int) and 0 <= hedgehog_address <= 255):
             raise ValueError(f"hedgehog_address must be 0..255 or 'auto', got {hedgehog_address!r}")
         if not (math.isfinite(default_latency_s) and default_latency_s >= 0.0):
             raise ValueError(f"default_latency_s must be a finite number >= 0, got {default_latency_s!r}")
+        if not (math.isfinite(relatch_after_s) and relatch_after_s > 0.0):
+            raise ValueError(f"relatch_after_s must be a finite number > 0, got {relatch_after_s!r}")
         self.counters = Counters()
         self.default_latency_s = default_latency_s
+        self.relatch_after_s = relatch_after_s
+        self.auto = hedgehog_address == "auto"
         self.hedgehog_address: int | None = None if hedgehog_address == "auto" else hedgehog_address
         """Our hedgehog's address: configured, learnt (auto) or None while still unknown."""
+        self.previous_address: int | None = None
+        """Under auto, the address followed before the last change (None before any change)."""
+        self._heard_at = -math.inf  # arrival of our hedgehog's last position frame
+        self._candidate = (-1, 0)  # under auto: another address and how many position frames it sent meanwhile
         self._scanner = FrameScanner(self.counters)
         self._last_timestamp: dict[str, int] = {}
         self._decoders: dict[int, Decoder] = {
@@ -123,6 +140,12 @@ class MarvelmindParser:
         """End of stream: the bytes still held (an incomplete frame) are counted as junk."""
         self._scanner.finish()
 
+    def forget_address(self) -> None:
+        """Under auto: learn our hedgehog's address again from the next position frame (a configured one stays)."""
+        if self.auto and self.hedgehog_address is not None:
+            self.previous_address, self.hedgehog_address = self.hedgehog_address, None
+            self._last_timestamp.clear()  # another device's counter: its first frame is not a duplicate
+
     def _decode(self, frames: list[Frame], arrival: float) -> list[Event]:
         events: list[Event] = []
         by_code = self.counters.frames_by_code
@@ -142,6 +165,19 @@ class MarvelmindParser:
             return True
         self.counters.other_address += 1
         return False
+
+    def _relatches(self, address: int, arrival: float) -> bool:
+        """Under auto: whether this position frame of another address makes it ours (our hedgehog being silent)."""
+        if not self.auto:
+            return False
+        other, frames = self._candidate
+        self._candidate = (address, frames + 1 if other == address else 1)
+        if self._candidate[1] < RELATCH_FRAMES or arrival - self._heard_at < self.relatch_after_s:
+            return False
+        self.previous_address, self.hedgehog_address = self.hedgehog_address, address
+        self.counters.address_changes += 1
+        self._last_timestamp.clear()
+        return True
 
     def _is_duplicate(self, kind: str, timestamp: int) -> bool:
         """True (and counted) when the timestamp repeats the previous one of this kind of frame."""
@@ -173,9 +209,12 @@ class MarvelmindParser:
             return None
         if self.hedgehog_address is None:
             self.hedgehog_address = address  # auto: the first frame the sender says is its own
-        elif address != self.hedgehog_address:
+            if self.previous_address not in (None, address):
+                self.counters.address_changes += 1
+        elif address != self.hedgehog_address and not self._relatches(address, arrival):
             self.counters.other_address += 1
             return None
+        self._heard_at, self._candidate = arrival, (-1, 0)
         if self._is_duplicate("position", timestamp):
             return None
         timestamp_s = timestamp / (MS_PER_S if flags & FLAG_TIMESTAMP_MS else TICKS_PER_S_OLD)

@@ -7,6 +7,13 @@ in an executor, so the loop never blocks. Bytes are stamped with `clock()` as th
 `MarvelmindParser`; its events go to `on_event`. The reader never writes to the port: any request stops the
 beacon's stream for 5 s. When the device vanishes (unplug, reset, sleep) it reopens it with a capped exponential
 backoff, logging the outage once when it starts and once when it ends, never once per attempt.
+
+Two guards sit at this edge, before any event reaches the daemon. Under `hedgehog_address: auto` a reopened port may
+hold another hedgehog: the parser learns the address again from its first position frame (and re-latches by itself
+when the port stays open and our hedgehog falls silent while another streams); each change of address is logged once
+at INFO, old and new. A fix outside the map (drivers.marvelmind.mapbound: configured bounds, or the stationary
+beacons' box and a margin) is refused and counted as `outside_map`, never handed on: fused, it could re-seed the pose
+of a filter that has been rejecting fixes. The first refusal of a run is logged at WARNING, the end of the run at INFO.
 """
 
 from __future__ import annotations
@@ -24,7 +31,8 @@ from typing import Any
 import serial
 import serial_asyncio_fast
 
-from drivers.marvelmind.events import Counters, Event, Position
+from drivers.marvelmind.events import Counters, Event, Position, StationaryBeacons
+from drivers.marvelmind.mapbound import MapBound
 from drivers.marvelmind.protocol import MarvelmindParser
 from robotd.config import MarvelmindConfig
 
@@ -109,13 +117,17 @@ class MarvelmindReader:
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.config = config
-        self.parser = MarvelmindParser(config.hedgehog_address, config.default_latency_s)
+        self.parser = MarvelmindParser(config.hedgehog_address, config.default_latency_s, config.relatch_after_s)
+        self.map = MapBound(config.map_bounds_m, config.map_margin_m)
         self._on_event = on_event
         self._clock = clock
         self._state = LinkState.CONNECTING
         self._device: str | None = None
         self._last_fix_arrival: float | None = None
         self._outage_since: float | None = None
+        self._address: int | None = None  # under auto: the hedgehog address last logged as followed
+        self._reopened = False  # the port was reopened since the address was last seen
+        self._refused_run = 0  # consecutive fixes refused as outside the map
         self.reconnections = 0
 
     @property
@@ -154,6 +166,8 @@ class MarvelmindReader:
             self._note_outage(f"{path} vanished: {reason or 'closed'}")
             self._state = LinkState.LOST
             self.parser.finish()  # a frame cut by the outage is junk, not the start of the next connection's
+            self.parser.forget_address()  # under auto: what is plugged in next may be another hedgehog
+            self._reopened = True
 
     async def _open(self) -> tuple[str, Any, _SerialStream]:
         path = resolve_device(self.config.device)
@@ -174,10 +188,50 @@ class MarvelmindReader:
 
     def _on_bytes(self, data: bytes) -> None:
         arrival = self._clock()
-        for event in self.parser.feed(data, arrival):
+        events = self.parser.feed(data, arrival)
+        address = self.parser.hedgehog_address
+        if address is not None and self.parser.auto:
+            if address != self._address:
+                self._note_address(address)
+            self._reopened = False
+        for event in events:
             if isinstance(event, Position):
+                if not self.map.admits(event.x, event.y):
+                    self._note_outside_map(event)
+                    continue
+                if self._refused_run:
+                    logger.info("marvelmind: fixes inside the map again after %d refused", self._refused_run)
+                    self._refused_run = 0
                 self._last_fix_arrival = event.arrival
+            elif isinstance(event, StationaryBeacons):
+                self.map.on_beacons(event)
             self._on_event(event)
+
+    def _note_address(self, address: int) -> None:
+        """One INFO line per hedgehog address learnt under auto: the first, and each change, with the old one."""
+        if self._address is None:
+            logger.info("marvelmind: following hedgehog address %d (auto)", address)
+        else:
+            why = (
+                "the port was reopened"
+                if self._reopened
+                else f"{self._address} sent no position for {self.config.relatch_after_s:g} s while {address} did"
+            )
+            logger.info(
+                "marvelmind: following hedgehog address %d instead of %d (auto: %s)", address, self._address, why
+            )
+        self._address = address
+
+    def _note_outside_map(self, fix: Position) -> None:
+        self.parser.counters.outside_map += 1
+        self._refused_run += 1
+        if self._refused_run == 1:
+            box = self.map.box
+            assert box is not None
+            logger.warning(
+                "marvelmind: fix (%.2f, %.2f) m is outside the map x %.2f..%.2f, y %.2f..%.2f m: refused",
+                fix.x, fix.y, box[0], box[2], box[1], box[3],
+            )  # fmt: skip
 
     def _note_outage(self, reason: str) -> None:
         if self._outage_since is None:  # once per outage, not once per attempt

@@ -47,7 +47,8 @@ def _number(value: Any) -> float:
 
 
 def show(stream: TextIO, out: TextIO, raw: bool, count: int | None) -> int:
-    """Print messages from a line stream until it ends or `count` poses were shown; returns the exit status."""
+    """Print messages from a line stream until it ends or `count` poses were shown; returns the exit status (1 after
+    an error message from the daemon)."""
     poses = 0
     for line in stream:
         try:
@@ -67,6 +68,9 @@ def show(stream: TextIO, out: TextIO, raw: bool, count: int | None) -> int:
         elif kind == "pose":
             out.write(f"\r{describe_pose(message)}\x1b[K")
             out.flush()
+        if kind == "error":  # the daemon says why it is closing the connection (e.g. too many clients)
+            print(f"robotd pose: the daemon closed the connection: {message.get('error')}", file=sys.stderr)
+            return 1
         if kind == "pose":
             poses += 1
             if count is not None and poses >= count:

@@ -3,14 +3,22 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from pathlib import Path
 
-from robotd import librsf
+from robotd import librsf, logcheck
 from robotd.config import RobotdConfig, load, parse
 from robotd.logfile import read_log
-from robotd.replay import cyclic_gc_paused, format_table, replay, write_outputs
+from robotd.replay import cyclic_gc_paused, format_table, replay, robot_from_log, write_outputs
+
+# sysexits.h: what a script calling `robotd replay` can tell apart
+EX_DATAERR = 65  # the log cannot be replayed (no events, times going backwards)
+EX_NOINPUT = 66  # the log cannot be read
+EX_CANTCREAT = 73  # --out cannot be made a directory
+EX_IOERR = 74  # the outputs could not be written
+SHOWN_PROBLEMS = 20  # bad lines listed one by one; beyond, one line counts the rest
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -31,7 +39,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def run_replay(args: argparse.Namespace) -> int:
-    """Replay the log, write the outputs, print the table; 1 when the log cannot be read."""
+    """Replay the log, write the outputs, print the table; bad lines are skipped and listed on stderr (exit 0), a log
+    that cannot be replayed or read and an output that cannot be written give one line and a sysexits status."""
     config: RobotdConfig = load(args.config) if args.config else parse("")
     with cyclic_gc_paused():
         return _replay(args, config)
@@ -39,17 +48,34 @@ def run_replay(args: argparse.Namespace) -> int:
 
 def _replay(args: argparse.Namespace, config: RobotdConfig) -> int:
     started = time.perf_counter()
+    out = Path(args.out)
+    try:  # before the replay: a bad --out should not cost a whole replay first
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        why = "a file is in the way" if isinstance(error, FileExistsError) else error.strerror or str(error)
+        print(f"robotd replay: --out {out}: cannot make it a directory: {why}", file=sys.stderr)
+        return EX_CANTCREAT
     try:
         log = read_log(args.log)
     except OSError as error:
-        print(f"robotd replay: {args.log}: {error}", file=sys.stderr)
-        return 1
-    for problem in log.problems:
-        print(f"robotd replay: {args.log}: {problem} (skipped)", file=sys.stderr)
+        print(f"robotd replay: {args.log}: {error.strerror or error}", file=sys.stderr)
+        return EX_NOINPUT
+    read_problems = log.problems
+    try:
+        log, checked_problems = logcheck.check(log, robot_from_log(log, config)[2])
+    except logcheck.LogRefusedError as refusal:
+        _report(args.log, [*read_problems, *refusal.problems])
+        print(f"robotd replay: {args.log}: {refusal}; nothing replayed", file=sys.stderr)
+        return EX_DATAERR
+    _report(args.log, [*read_problems, *checked_problems])
     result = replay(log, config)
     for problem in result.problems[len(log.problems) :]:
         print(f"robotd replay: {problem}", file=sys.stderr)
-    written = write_outputs(result, Path(args.out))
+    try:
+        written = write_outputs(result, out)
+    except OSError as error:
+        print(f"robotd replay: --out {out}: cannot write the outputs: {error}", file=sys.stderr)
+        return EX_IOERR
     elapsed = time.perf_counter() - started
     print(format_table(result))
     columns = log.columns()
@@ -60,6 +86,22 @@ def _replay(args: argparse.Namespace, config: RobotdConfig) -> int:
         print(f"{len(columns)} events, {span:.1f} s of log in {elapsed:.2f} s ({rate:.0f}x real time)")
     print("wrote " + ", ".join(str(path) for path in written))
     return 0
+
+
+def _report(log: str, problems: list[str]) -> None:
+    """The bad lines skipped, in file order: the first SHOWN_PROBLEMS one a line, then how many more."""
+    ordered = sorted(problems, key=_line_number)
+    for problem in ordered[:SHOWN_PROBLEMS]:
+        print(f"robotd replay: {log}: {problem} (skipped)", file=sys.stderr)
+    if len(ordered) > SHOWN_PROBLEMS:
+        print(
+            f"robotd replay: {log}: ... and {len(ordered) - SHOWN_PROBLEMS} more bad lines (skipped)", file=sys.stderr
+        )
+
+
+def _line_number(problem: str) -> int:
+    match = re.match(r"(?:line|event) (\d+)", problem)
+    return int(match.group(1)) if match else 0
 
 
 def run_convert(args: argparse.Namespace) -> int:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import logging
 import math
 import os
 import socket
@@ -154,20 +155,65 @@ async def test_a_stale_socket_file_is_replaced_but_a_live_one_is_not(short_dir: 
         await PoseServer(path).start()
 
 
-async def test_clients_beyond_the_limit_are_refused(short_dir: Path) -> None:
+async def test_closing_with_clients_connected_ends_their_streams_without_an_error(
+    short_dir: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     path = short_dir / "pose.sock"
-    server = PoseServer(path, max_clients=1)
+    server = PoseServer(path)
     await server.start()
-    connections = [await asyncio.open_unix_connection(str(path)) for _ in range(2)]
+    reader, writer = await asyncio.open_unix_connection(str(path))
     try:
-        assert (await read_line(connections[0][0]))["type"] == "hello"
-        assert await asyncio.wait_for(connections[1][0].read(), 2.0) == b""
+        assert (await read_line(reader))["type"] == "hello"
+        await server.close()
+        assert await asyncio.wait_for(reader.read(), 2.0) == b""
+        for _ in range(3):  # let asyncio run the connection's done-callbacks
+            await asyncio.sleep(0)
+    finally:
+        writer.close()
+        await writer.wait_closed()
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
+    assert not path.exists()
+
+
+async def test_clients_beyond_the_limit_get_one_error_line_then_the_close(short_dir: Path) -> None:
+    path = short_dir / "pose.sock"
+    server = PoseServer(path, max_clients=2)
+    await server.start()
+    connections = [await asyncio.open_unix_connection(str(path)) for _ in range(3)]
+    try:
+        for reader, _ in connections[:2]:
+            assert (await read_line(reader))["type"] == "hello"
+        refused = await asyncio.wait_for(connections[2][0].read(), 2.0)  # everything until the close
+        assert refused.count(b"\n") == 1
+        assert json.loads(refused) == {"type": "error", "error": "too many clients (max 2)"}
         assert server.counters["refused"] == 1
+        server.publish({"type": "status", "n": 1})  # the clients within the limit are still served
+        for reader, _ in connections[:2]:
+            assert (await read_line(reader)) == {"type": "status", "n": 1}
     finally:
         for _, writer in connections:
             writer.close()
             await writer.wait_closed()
         await server.close()
+
+
+async def test_robotd_pose_says_why_a_full_daemon_closed_it(
+    short_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = short_dir / "pose.sock"
+    server = PoseServer(path, max_clients=1)
+    await server.start()
+    reader, writer = await asyncio.open_unix_connection(str(path))
+    try:
+        assert (await read_line(reader))["type"] == "hello"
+        status = await asyncio.wait_for(asyncio.to_thread(main, ["pose", "--socket", str(path)]), 5.0)
+    finally:
+        writer.close()
+        await writer.wait_closed()
+        await server.close()
+    assert status == 1
+    err = capsys.readouterr().err
+    assert err.splitlines() == ["robotd pose: the daemon closed the connection: too many clients (max 1)"]
 
 
 def test_robotd_pose_prints_one_line_per_pose() -> None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -11,23 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
-
-REPO = Path(__file__).resolve().parents[3]
-
-
-def processes_mentioning(text: str) -> list[int]:
-    """PIDs whose command line contains `text` (our own children have the demo's folder in theirs)."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit() or int(entry.name) == os.getpid():
-            continue
-        try:
-            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        except OSError:
-            continue
-        if text in cmdline:
-            found.append(int(entry.name))
-    return found
+from process_support import REPO, processes_mentioning
 
 
 def demo(out: Path, *extra: str) -> subprocess.Popen[str]:
@@ -56,7 +39,8 @@ def test_a_short_square_through_the_daemon_is_scored_and_leaves_no_process(tmp_p
 
 
 @pytest.mark.slow
-def test_ctrl_c_stops_every_process_the_demo_started(tmp_path: Path) -> None:
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_or_sigterm_stops_every_process_the_demo_started(tmp_path: Path, signum: signal.Signals) -> None:
     out = tmp_path / "demo"
     proc = demo(out, "--side", "3")
     deadline = time.monotonic() + 30
@@ -66,8 +50,8 @@ def test_ctrl_c_stops_every_process_the_demo_started(tmp_path: Path) -> None:
         time.sleep(0.1)
     children = set(processes_mentioning(str(out))) - {proc.pid}
     assert len(children) == 2  # the virtual robot and the daemon
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(signum)
     output, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 130, output
+    assert proc.returncode == 128 + signum, output
     assert "every process it started has been stopped" in output
     assert processes_mentioning(str(out)) == []
