@@ -10,6 +10,8 @@ from robotd.kinematics import Twist
 from robotd.teleop import load_key
 from robotd.teleop_client import Leg, UdpLink, run_keyboard, run_plan, square_plan
 
+SYNC_TIMEOUT_S = 2.0  # the daemon answers a hello within a round trip; this covers one that is still starting
+
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `robotd teleop`."""
@@ -54,6 +56,12 @@ def teleop(args: argparse.Namespace) -> int:
     port = args.port or (config.teleop.port if config is not None else 47800)
     key = _key(args, config)
     link = UdpLink(host, port, key)
+    if not link.sync(SYNC_TIMEOUT_S):
+        print(
+            f"robotd teleop: no answer from robotd at {host}:{port} (not running, or another key?): "
+            "asking again while the plan runs; the robot does not move until it answers",
+            file=sys.stderr,
+        )
     try:
         if args.send is not None:
             run_plan(link, [Leg(Twist(*args.send), args.duration)], args.rate)
