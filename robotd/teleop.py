@@ -14,7 +14,8 @@ and a command for another instance (a capture replayed after a restart, or a cli
 restart) is refused as `stale_session` and answered with a WELCOME too, so a live client re-synchronises within one
 round trip. A WELCOME is the size of the request it answers (never an amplifier), at most `ANSWERS_PER_S` a second
 go to one source, and its tag covers the request's tag, so a client takes only an answer to a datagram it sent
-recently. Unauthenticated, anyone may ask for the nonce: it then only stops blind replays of recordings.
+recently. A hello is answered whatever the sender's clock: the welcome carries ours, so a client can say that its
+clock is off. Unauthenticated, anyone may ask for the nonce: it then only stops blind replays of recordings.
 
 Time. The sender stamps Unix time because it is the only clock two machines can share; monotonic clocks have
 unrelated origins. Two checks use it: (1) when the receiver knows its own Unix time, a sender clock more than
@@ -65,6 +66,7 @@ CLOCK_DRIFT = 1e-3  # s/s the per-session clock offset estimate may rise (1000 p
 ANSWERS_PER_S = 5.0  # WELCOMEs a second to one source (a burst of as many): a client needs one per daemon start
 BURST_S = 0.25  # a source's bucket holds this many seconds of its rate: a client's key-press bursts pass
 _SESSION = struct.Struct(">II")  # session and sequence, at offset 8
+_TIME = struct.Struct(">d")
 _INSTANCE = slice(16, 16 + INSTANCE_SIZE)
 _TWIST = slice(16 + INSTANCE_SIZE + 8, HEADER_SIZE)
 
@@ -171,6 +173,7 @@ class TeleopSender:
         self.session = session if session is not None else secrets.randbits(32) | 1
         self.sequence = 0
         self.instance = instance  # the daemon's nonce, None until a welcome brought it
+        self.daemon_time = math.nan  # the daemon's Unix time in the latest welcome (0 when it did not know it)
         self._sent: OrderedDict[int, bytes] = OrderedDict()  # sequence -> tag of the latest datagrams, for answers
 
     def hello(self, sender_time: float) -> bytes:
@@ -202,6 +205,7 @@ class TeleopSender:
         self._sent.clear()
         changed = instance != self.instance
         self.instance = instance
+        self.daemon_time = _TIME.unpack_from(header, 16 + INSTANCE_SIZE)[0]
         return changed
 
     def _encode(self, kind: MessageType, instance: bytes, twist: Twist, sender_time: float) -> bytes:
@@ -343,11 +347,13 @@ class TeleopReceiver:
             return Reject.BAD_TAG
         if not all(map(math.isfinite, (sender_time, vx, vy, wz))):
             return Reject.NON_FINITE
+        if kind == MessageType.HELLO:  # whatever its clock: the welcome carries ours, so a client can tell it is off
+            return _AnswerDue(session, sequence, tag, stale=False)
         offset_limit = self.max_clock_offset_s
         if wall_time is not None and offset_limit > 0.0 and abs(wall_time - sender_time) > offset_limit:
             return Reject.CLOCK_OFFSET
-        if kind == MessageType.HELLO or instance != self.instance:
-            return _AnswerDue(session, sequence, tag, stale=kind != MessageType.HELLO)
+        if instance != self.instance:
+            return _AnswerDue(session, sequence, tag, stale=True)
         state = self._session
         sample = now - sender_time
         if state is None or session != state.session:

@@ -7,6 +7,7 @@ explicit stop, so a client that quits never leaves the robot driving until the d
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import select
 import socket
@@ -61,6 +62,7 @@ class UdpLink:
         self.sock.connect((host, port))
         self.sock.setblocking(False)
         self.resyncs = 0  # times a welcome brought a new daemon instance
+        self.clock_offset_s = math.nan  # the daemon's Unix time minus ours, from the latest welcome
 
     @property
     def synced(self) -> bool:
@@ -90,6 +92,8 @@ class UdpLink:
                 continue
             if self.sender.take_answer(data):
                 self.resyncs += 1
+                daemon_time = self.sender.daemon_time
+                self.clock_offset_s = daemon_time - time.time() if daemon_time > 0.0 else math.nan
 
     def send(self, twist: Twist) -> None:
         """Send one command (a stop when the twist is zero), or a hello while the daemon's instance is unknown."""

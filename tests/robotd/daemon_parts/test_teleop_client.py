@@ -7,6 +7,7 @@ import os
 import pty
 import socket
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from robotd.config import TeleopConfig
 from robotd.kinematics import Twist
 from robotd.teleop import Answer, StopCommand, TeleopCommand, TeleopMessage, TeleopReceiver
 from robotd.teleop_client import STOP, KeyboardState, UdpLink, run_keyboard, square_plan
-from robotd.teleop_socket import open_teleop
+from robotd.teleop_socket import TeleopSocket, open_teleop
 
 KEY = b"loopback-test-key-0123456789"
 
@@ -49,6 +50,27 @@ async def test_send_for_drives_then_stops_through_the_real_receiver(tmp_path: Pa
     assert isinstance(messages[-1], StopCommand)
     assert receiver.counters()["accepted"] == len(messages)
     assert sum(receiver.rejected.values()) == 0
+
+
+async def test_the_client_says_when_the_robots_clock_is_off(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    config = TeleopConfig(bind="127.0.0.1", port=free_udp_port(), key_file="unused")
+    receiver = TeleopReceiver.from_config(config, KEY)
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    raw.bind(("127.0.0.1", config.port))
+    messages: list[TeleopMessage] = []
+    # the robot's clock is a minute behind: beyond max_clock_offset_s, so every command is refused
+    robot = TeleopSocket(raw, receiver, messages.append, read_budget_per_s=1e4, wall_clock=lambda: time.time() - 60.0)
+    key_file = tmp_path / "teleop.key"
+    key_file.write_bytes(KEY)
+    try:
+        argv = ["teleop", "--port", str(config.port), "--key-file", str(key_file), "--send", "0.1", "0", "0"]
+        status = await asyncio.to_thread(main, [*argv, "--for", "0.1"])
+    finally:
+        robot.close()
+    assert status == 0
+    assert "the robot's clock is -60.0 s from this computer's" in capsys.readouterr().err
+    assert messages == []
+    assert receiver.counters()["clock_offset"] > 0
 
 
 def test_the_square_is_four_slides_with_a_stop_after_each() -> None:
