@@ -71,14 +71,15 @@ class UdpLink:
 
     def sync(self, timeout_s: float, retry_s: float = 0.1) -> bool:
         """Ask for the daemon's instance until it answers or `timeout_s` passes; True when the link is synced."""
-        deadline = time.monotonic() + timeout_s
-        while not self.synced:
-            self._send(self.sender.hello(time.time()))
-            left = deadline - time.monotonic()
-            if left <= 0.0:
-                break
-            select.select([self.sock], [], [], min(retry_s, left))
+        now = time.monotonic()
+        deadline, next_hello = now + timeout_s, now
+        while not self.synced and now < deadline:
+            if now >= next_hello:  # paced: an ICMP error wakes the select at once when nobody listens
+                self._send(self.sender.hello(time.time()))
+                next_hello = now + retry_s
+            select.select([self.sock], [], [], max(0.0, min(next_hello, deadline) - now))
             self.take_answers()
+            now = time.monotonic()
         return self.synced
 
     def take_answers(self) -> None:

@@ -73,6 +73,17 @@ async def test_the_client_says_when_the_robots_clock_is_off(tmp_path: Path, caps
     assert receiver.counters()["clock_offset"] > 0
 
 
+def test_a_client_with_nobody_listening_asks_at_its_pace_and_gives_up() -> None:
+    link = UdpLink("127.0.0.1", free_udp_port(), KEY)  # nobody there: each hello comes back as an ICMP error
+    try:
+        assert not link.sync(0.5, retry_s=0.1)
+        assert 3 <= link.sender.sequence <= 6  # one hello each 0.1 s, not a busy loop woken by the errors
+        link.send(Twist(0.2, 0.0, 0.0))  # still unsynced: a hello, not a command, and no error
+        assert not link.synced
+    finally:
+        link.sock.close()
+
+
 def test_the_square_is_four_slides_with_a_stop_after_each() -> None:
     plan = square_plan(3.0, 0.3, loops=2, pause_s=1.0)
     assert len(plan) == 16
