@@ -364,6 +364,23 @@ class TeleopConfig:
         " 60 s: a captured datagram can be replayed for this long (keep the clocks in sync with NTP).",
         in_range(0.0, 60.0, above_low=True),
     )
+    max_datagrams_per_s: float = setting(
+        200.0,
+        "Datagrams taken per second from one source address (a token bucket holding a quarter second of them); more"
+        " are dropped before any parsing and counted as rate_limited. A teleop client sends 20 to 50.",
+        in_range(1.0, 1_000_000.0),
+    )
+    max_sources: int = setting(
+        256,
+        "Source addresses the rate limit remembers; the one seen least recently is forgotten first.",
+        in_range(1, 100_000),
+    )
+    read_budget_per_s: float = setting(
+        10_000.0,
+        "Datagrams read from the socket per second, all sources together: beyond it reading pauses and the kernel"
+        " drops the excess, so a flood costs the daemon a bounded share of the CPU and the control loop keeps time.",
+        in_range(100.0, 10_000_000.0),
+    )
 
 
 @dataclass(frozen=True, slots=True)

@@ -40,7 +40,8 @@ from robotd.estimator import Estimator
 from robotd.kinematics import Geometry, Twist
 from robotd.periodstats import PeriodStats
 from robotd.sdnotify import Notifier
-from robotd.teleop import StopCommand, TeleopMessage, open_teleop, receiver_from_config
+from robotd.teleop import StopCommand, TeleopMessage, receiver_from_config
+from robotd.teleop_socket import TeleopSocket, open_teleop
 
 log = logging.getLogger("robotd")
 
@@ -67,6 +68,7 @@ class _Teleop:
 
     twist: Twist | None = None
     received_at: float | None = None
+    stepped_at: float = -math.inf  # when a command last stepped the controller at once
 
 
 MotorsFactory = Callable[[], MotorOutputs]
@@ -150,7 +152,13 @@ class Daemon:
         self._counters["teleop_commands"] += 1
         if self._recorder is not None:
             self._recorder.write(logfile.Command(message.received_at, twist.vx, twist.vy, twist.wz))
-        self._control_step(self.clock())  # the command reaches the motors now, not at the next period
+        # The command reaches the motors now, not at the next period; but at most one command per half period
+        # does, so a flood of valid commands cannot run the controller and the motor writes at its rate: the
+        # control loop applies a command that arrives sooner at its next tick.
+        now = self.clock()
+        if now - teleop.stepped_at >= 0.5 * self.controller.period_s:
+            teleop.stepped_at = now
+            self._control_step(now)
 
     # --- tasks --------------------------------------------------------------------------------------------------
 
@@ -161,7 +169,7 @@ class Daemon:
         for signum in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(signum, stop.set)
         status = 1
-        transport: asyncio.DatagramTransport | None = None
+        transport: TeleopSocket | None = None
         try:
             await self._connect_motors()
             Path(self.config.pose_socket.path).parent.mkdir(parents=True, exist_ok=True)

@@ -279,6 +279,8 @@ def drive(config_path: Path, plan: DemoPlan, out: TextIO) -> None:
     legs.append(Leg(Twist(0.0, 0.0, 0.0), 1.5))  # come to rest before the end
     link = UdpLink("127.0.0.1", config.teleop.port, None)
     try:
+        if not link.sync(5.0):
+            raise RuntimeError("the daemon did not answer the teleop client's hello within 5 s")
         run_plan(link, legs, 20.0, report=_progress(out, time.monotonic(), legs))
     finally:
         link.close()

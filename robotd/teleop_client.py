@@ -7,6 +7,7 @@ explicit stop, so a client that quits never leaves the robot driving until the d
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import select
 import socket
@@ -19,7 +20,7 @@ from dataclasses import dataclass, replace
 from typing import TextIO
 
 from robotd.kinematics import Twist
-from robotd.teleop import TeleopSender
+from robotd.teleop import DATAGRAM_SIZE, TeleopSender
 
 STOP = Twist(0.0, 0.0, 0.0)
 
@@ -48,17 +49,66 @@ def square_plan(side_m: float, speed_mps: float, loops: int, pause_s: float) -> 
 
 
 class UdpLink:
-    """A sender session on a connected UDP socket."""
+    """A sender session on a connected UDP socket, synchronised with the daemon instance it talks to.
+
+    A command needs the daemon's instance nonce: until a welcome has brought it, `send` sends a hello instead of
+    the command. Answers are read (without waiting) before each send, so when the daemon restarts, the welcome
+    it sends back for the first refused command re-synchronises the link within one round trip.
+    """
 
     def __init__(self, host: str, port: int, key: bytes | None) -> None:
         self.sender = TeleopSender(key)
         self.sock = socket.socket(socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0][0], socket.SOCK_DGRAM)
         self.sock.connect((host, port))
+        self.sock.setblocking(False)
+        self.resyncs = 0  # times a welcome brought a new daemon instance
+        self.clock_offset_s = math.nan  # the daemon's Unix time minus ours, from the latest welcome
+
+    @property
+    def synced(self) -> bool:
+        """Whether the link knows the daemon's instance (commands can be sent)."""
+        return self.sender.instance is not None
+
+    def sync(self, timeout_s: float, retry_s: float = 0.1) -> bool:
+        """Ask for the daemon's instance until it answers or `timeout_s` passes; True when the link is synced."""
+        now = time.monotonic()
+        deadline, next_hello = now + timeout_s, now
+        while not self.synced and now < deadline:
+            if now >= next_hello:  # paced: an ICMP error wakes the select at once when nobody listens
+                self._send(self.sender.hello(time.time()))
+                next_hello = now + retry_s
+            select.select([self.sock], [], [], max(0.0, min(next_hello, deadline) - now))
+            self.take_answers()
+            now = time.monotonic()
+        return self.synced
+
+    def take_answers(self) -> None:
+        """Read the daemon's answers waiting on the socket and adopt a new instance from a genuine one."""
+        while True:
+            try:
+                data = self.sock.recv(DATAGRAM_SIZE + 1)
+            except (BlockingIOError, InterruptedError):
+                return
+            except ConnectionRefusedError:  # an ICMP "port unreachable" for an earlier send: nobody listening
+                continue
+            if self.sender.take_answer(data):
+                self.resyncs += 1
+                daemon_time = self.sender.daemon_time
+                self.clock_offset_s = daemon_time - time.time() if daemon_time > 0.0 else math.nan
 
     def send(self, twist: Twist) -> None:
-        """Send one command (a stop when the twist is zero)."""
-        datagram = self.sender.stop(time.time()) if twist == STOP else self.sender.command(twist, time.time())
-        with contextlib.suppress(ConnectionRefusedError):  # nobody listening yet: UDP is fire-and-forget
+        """Send one command (a stop when the twist is zero), or a hello while the daemon's instance is unknown."""
+        self.take_answers()
+        if not self.synced:
+            self._send(self.sender.hello(time.time()))
+        elif twist == STOP:
+            self._send(self.sender.stop(time.time()))
+        else:
+            self._send(self.sender.command(twist, time.time()))
+
+    def _send(self, datagram: bytes) -> None:
+        # nobody listening yet, or the socket buffer full: UDP is fire-and-forget, the next send tries again
+        with contextlib.suppress(ConnectionRefusedError, BlockingIOError):
             self.sock.send(datagram)
 
     def close(self) -> None:

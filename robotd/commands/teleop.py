@@ -5,10 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from robotd.config import RobotdConfig, load
+from robotd.config import RobotdConfig, TeleopConfig, load
 from robotd.kinematics import Twist
 from robotd.teleop import load_key
 from robotd.teleop_client import Leg, UdpLink, run_keyboard, run_plan, square_plan
+
+SYNC_TIMEOUT_S = 2.0  # the daemon answers a hello within a round trip; this covers one that is still starting
+CLOCK_WARNING_S = 1.0  # a clock offset worth a warning (a round trip on a network is milliseconds)
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -54,6 +57,19 @@ def teleop(args: argparse.Namespace) -> int:
     port = args.port or (config.teleop.port if config is not None else 47800)
     key = _key(args, config)
     link = UdpLink(host, port, key)
+    if not link.sync(SYNC_TIMEOUT_S):
+        print(
+            f"robotd teleop: no answer from robotd at {host}:{port} (not running, or another key?): "
+            "asking again while the plan runs; the robot does not move until it answers",
+            file=sys.stderr,
+        )
+    elif abs(link.clock_offset_s) > CLOCK_WARNING_S:
+        limit = config.teleop.max_clock_offset_s if config is not None else TeleopConfig().max_clock_offset_s
+        print(
+            f"robotd teleop: the robot's clock is {link.clock_offset_s:+.1f} s from this computer's; it refuses "
+            f"commands beyond teleop.max_clock_offset_s ({limit:g} s): set both clocks (NTP)",
+            file=sys.stderr,
+        )
     try:
         if args.send is not None:
             run_plan(link, [Leg(Twist(*args.send), args.duration)], args.rate)

@@ -196,6 +196,7 @@ class Robot:
         """One teleop datagram from this robot's client."""
         if self.link is None:
             self.link = UdpLink("127.0.0.1", self.config.teleop.port, None)
+            assert self.link.sync(5.0), "the daemon did not answer the teleop hello"
         self.link.send(twist)
 
     def drive(self, twist: Twist, duration_s: float, rate_hz: float = 20.0) -> float:

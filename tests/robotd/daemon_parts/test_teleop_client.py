@@ -7,6 +7,8 @@ import os
 import pty
 import socket
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -14,8 +16,9 @@ import pytest
 from robotd.cli import main
 from robotd.config import TeleopConfig
 from robotd.kinematics import Twist
-from robotd.teleop import StopCommand, TeleopCommand, TeleopMessage, TeleopReceiver, open_teleop
+from robotd.teleop import Answer, StopCommand, TeleopCommand, TeleopMessage, TeleopReceiver
 from robotd.teleop_client import STOP, KeyboardState, UdpLink, run_keyboard, square_plan
+from robotd.teleop_socket import TeleopSocket, open_teleop
 
 KEY = b"loopback-test-key-0123456789"
 
@@ -49,6 +52,38 @@ async def test_send_for_drives_then_stops_through_the_real_receiver(tmp_path: Pa
     assert sum(receiver.rejected.values()) == 0
 
 
+async def test_the_client_says_when_the_robots_clock_is_off(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    config = TeleopConfig(bind="127.0.0.1", port=free_udp_port(), key_file="unused")
+    receiver = TeleopReceiver.from_config(config, KEY)
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    raw.bind(("127.0.0.1", config.port))
+    messages: list[TeleopMessage] = []
+    # the robot's clock is a minute behind: beyond max_clock_offset_s, so every command is refused
+    robot = TeleopSocket(raw, receiver, messages.append, read_budget_per_s=1e4, wall_clock=lambda: time.time() - 60.0)
+    key_file = tmp_path / "teleop.key"
+    key_file.write_bytes(KEY)
+    try:
+        argv = ["teleop", "--port", str(config.port), "--key-file", str(key_file), "--send", "0.1", "0", "0"]
+        status = await asyncio.to_thread(main, [*argv, "--for", "0.1"])
+    finally:
+        robot.close()
+    assert status == 0
+    assert "the robot's clock is -60.0 s from this computer's" in capsys.readouterr().err
+    assert messages == []
+    assert receiver.counters()["clock_offset"] > 0
+
+
+def test_a_client_with_nobody_listening_asks_at_its_pace_and_gives_up() -> None:
+    link = UdpLink("127.0.0.1", free_udp_port(), KEY)  # nobody there: each hello comes back as an ICMP error
+    try:
+        assert not link.sync(0.5, retry_s=0.1)
+        assert 3 <= link.sender.sequence <= 6  # one hello each 0.1 s, not a busy loop woken by the errors
+        link.send(Twist(0.2, 0.0, 0.0))  # still unsynced: a hello, not a command, and no error
+        assert not link.synced
+    finally:
+        link.sock.close()
+
+
 def test_the_square_is_four_slides_with_a_stop_after_each() -> None:
     plan = square_plan(3.0, 0.3, loops=2, pause_s=1.0)
     assert len(plan) == 16
@@ -76,25 +111,45 @@ def test_keys_latch_one_motion_and_scale_speed() -> None:
     assert quit_state.twist == STOP
 
 
+class Listener:
+    """A bare UDP socket with a receiver: answers hellos like the daemon, hands back the other messages."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(2.0)
+        self.port: int = self.sock.getsockname()[1]
+        self.receiver = TeleopReceiver(KEY)
+
+    def next_message(self) -> TeleopMessage | None:
+        """The next datagram's message (answering hellos on the way); None for a rejected one."""
+        while True:
+            data, address = self.sock.recvfrom(200)
+            outcome = self.receiver.datagram(data, 0.0)
+            if not isinstance(outcome, Answer):
+                return outcome
+            self.sock.sendto(outcome.datagram, address)
+
+
 def test_interactive_keys_on_a_pseudo_terminal() -> None:
-    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    listener.bind(("127.0.0.1", 0))
-    listener.settimeout(2.0)
+    listener = Listener()
     master, slave = pty.openpty()
     terminal = os.fdopen(slave, "r")
     out_path = os.devnull
-    link = UdpLink("127.0.0.1", listener.getsockname()[1], KEY)
-    receiver = TeleopReceiver(KEY)
+    link = UdpLink("127.0.0.1", listener.port, KEY)
     try:
         with open(out_path, "w") as out:
             driver = threading.Thread(target=run_keyboard, args=(link, 20.0, terminal, out))
             driver.start()
-            # The first datagram (a stop) is sent once the terminal is in cbreak mode, which flushes earlier input.
-            assert isinstance(receiver.datagram(listener.recv(100), 0.0), StopCommand)
+            # The first datagram (a hello, then stops) is sent once the terminal is in cbreak mode, which flushes
+            # earlier input; the hello is answered and the link sends stops from then on.
+            first = listener.next_message()
+            while first is None or not isinstance(first, StopCommand):
+                first = listener.next_message()
             os.write(master, b"w")
             forward = None
             for _ in range(20):
-                message = receiver.datagram(listener.recv(100), 0.0)
+                message = listener.next_message()
                 if isinstance(message, TeleopCommand):
                     forward = message
                     break
@@ -103,10 +158,10 @@ def test_interactive_keys_on_a_pseudo_terminal() -> None:
             assert not driver.is_alive()
         link.close()  # what the command does on every exit: a final stop
         last = None
-        listener.settimeout(0.5)
+        listener.sock.settimeout(0.5)
         while True:
             try:
-                last = receiver.datagram(listener.recv(100), 0.0)
+                last = listener.next_message()
             except TimeoutError:
                 break
         assert forward is not None
@@ -116,4 +171,40 @@ def test_interactive_keys_on_a_pseudo_terminal() -> None:
         link.sock.close()  # already closed on success; closing again is harmless
         terminal.close()
         os.close(master)
-        listener.close()
+        listener.sock.close()
+
+
+async def test_the_client_resyncs_with_a_restarted_receiver_and_drives_again() -> None:
+    config = TeleopConfig(bind="127.0.0.1", port=free_udp_port(), key_file="unused")
+    first = TeleopReceiver.from_config(config, KEY)
+    messages: list[TeleopMessage] = []
+    listening = await open_teleop(config, first, messages.append)
+    link = UdpLink("127.0.0.1", config.port, KEY)
+    try:
+        assert await asyncio.to_thread(link.sync, 2.0)
+        link.send(Twist(0.2, 0.0, 0.0))
+        await wait_until(lambda: len(messages) == 1)
+        listening.close()  # the daemon stops; commands meanwhile go nowhere
+        link.send(Twist(0.2, 0.0, 0.0))
+        restarted = TeleopReceiver.from_config(config, KEY)
+        listening = await open_teleop(config, restarted, messages.append)
+        # the client goes on at its rate: the first command is refused and answered, a later one drives
+        for _ in range(50):
+            link.send(Twist(0.3, 0.0, 0.0))
+            await asyncio.sleep(0.02)
+            if restarted.accepted:
+                break
+        assert restarted.counters()["stale_session"] >= 1
+        assert restarted.accepted >= 1
+        assert link.resyncs == 2
+        assert isinstance(messages[-1], TeleopCommand)
+        assert messages[-1].twist == Twist(0.3, 0.0, 0.0)
+    finally:
+        listening.close()
+        link.sock.close()
+
+
+async def wait_until(condition: Callable[[], bool], timeout_s: float = 2.0) -> None:
+    async with asyncio.timeout(timeout_s):
+        while not condition():
+            await asyncio.sleep(0.005)
