@@ -179,6 +179,8 @@ def running_robot(config_path: Path, out: Path, seed: int | None) -> Iterator[tu
         seed_args = [] if seed is None else ["--seed", str(seed)]
         children.start("robotd vhw", ["vhw", "--config", str(config_path), *seed_args], out / "vhw.log")
         _wait_for(lambda: Path(config.marvelmind.device).exists(), 20.0, "the virtual robot", children)
+        # the demo replaces its own outputs: the daemon never overwrites a log, it would record to run.1.jsonl
+        (out / "run.jsonl").unlink(missing_ok=True)
         children.start(
             "robotd run",
             ["run", "--config", str(config_path), "--record", str(out / "run.jsonl")],
