@@ -44,7 +44,7 @@ from robotd.control import MotionController, StallFault
 from robotd.estimator import Estimator
 from robotd.kinematics import Geometry, Twist
 from robotd.periodstats import PeriodStats
-from robotd.recorder import Recorder, create_log
+from robotd.recorder import Recorder, create_log, daemon_meta
 from robotd.sdnotify import Notifier
 from robotd.teleop import StopCommand, TeleopMessage, open_teleop, receiver_from_config
 
@@ -140,9 +140,10 @@ class Daemon:
 
     def _on_ticks(self, ticks: WheelTicks) -> None:
         self.estimator.on_wheels(ticks.t, ticks.ticks)
-        # a degraded sample's speeds read 0 without meaning it: unknown (NaN) makes the PID drive open-loop rather than
-        # wind up against a wheel it cannot see, and keeps the stall guard from blaming the wheel
-        self._wheel_speeds = UNKNOWN_SPEEDS if ticks.degraded else ticks.speeds_rad_s
+        # while the encoder stream is lost the speeds read 0 without meaning it: unknown (NaN) makes the PID drive
+        # open-loop rather than wind up against wheels it cannot see, and keeps the stall guard from blaming them
+        lost = ticks.degraded and not any(ticks.speeds_rad_s)
+        self._wheel_speeds = UNKNOWN_SPEEDS if lost else ticks.speeds_rad_s
         self._odometry_state = "degraded" if ticks.degraded else "ok"
         self._alive.filter = self.clock()
         if self._recorder is not None:
@@ -411,20 +412,7 @@ class Daemon:
         return [{"kind": "stall", "wheels": list(fault.wheels), "since": fault.since}]
 
     def _open_recorder(self, stream: TextIO | None) -> Recorder | None:
-        if stream is None:
-            return None
-        robot = self.config.robot
-        meta = logfile.Meta(
-            robot={
-                "wheel_radius": robot.wheel_radius_m,
-                "lx": robot.lx_m,
-                "ly": robot.ly_m,
-                "counts_per_rev": self.config.encoders.counts_per_rev,
-                "ips_offset": list(robot.ips_offset_m),
-            },
-            source="robotd run --record",
-        )
-        return Recorder(stream, meta)
+        return None if stream is None else Recorder(stream, daemon_meta(self.config))
 
 
 def _leaves(group: BaseExceptionGroup[Exception]) -> list[Exception]:

@@ -24,6 +24,7 @@ import threading
 from pathlib import Path
 from typing import Any, TextIO
 
+from robotd.config import RobotdConfig
 from robotd.logevents import Event, Meta, encode
 
 log = logging.getLogger("robotd.recorder")
@@ -67,6 +68,21 @@ def create_log(path: Path) -> tuple[TextIO, Path]:
             raise RecordingError(f"cannot create {candidate}: {error.strerror or error}") from None
         return stream, candidate
     raise RecordingError(f"{path} and {path.stem}.1{path.suffix} to .{MAX_NUMBERED}{path.suffix} all exist")
+
+
+def daemon_meta(config: RobotdConfig) -> Meta:
+    """The meta line of a log `robotd run` records: the robot's geometry, as configured."""
+    robot = config.robot
+    return Meta(
+        robot={
+            "wheel_radius": robot.wheel_radius_m,
+            "lx": robot.lx_m,
+            "ly": robot.ly_m,
+            "counts_per_rev": config.encoders.counts_per_rev,
+            "ips_offset": list(robot.ips_offset_m),
+        },
+        source="robotd run --record",
+    )
 
 
 class Recorder:

@@ -87,3 +87,7 @@ def test_speeds_of_a_degraded_encoder_sample_are_unknown_not_zero_so_no_stall_is
     assert control["state"] == "driving"
     feed_forward = harness.daemon.controller.last.wheel_setpoints[0] / 20.0
     assert harness.motors.duties[0] == pytest.approx(feed_forward), "open-loop at the feed-forward, no wind-up"
+    # A sample degraded by a lost report while the stream runs still carries measured speeds: the PID uses them.
+    harness.encoders.speeds = [0.5, 0.5, 0.5, 0.5]
+    harness.tick(send=FORWARD, degraded=True)
+    assert harness.motors.duties[0] > feed_forward, "closed loop: the slow wheel is pushed beyond the feed-forward"
