@@ -30,7 +30,7 @@ from robotd.logevents import Event, Meta, encode
 log = logging.getLogger("robotd.recorder")
 
 QUEUE_EVENTS = 4096
-"""Events held for the writer thread: about 40 s of the daemon's events (wheels at 50 Hz, fixes, commands)."""
+"""Events held for the writer thread: about 50 s of the daemon's events (wheels at 50 Hz, fixes, commands)."""
 MAX_NUMBERED = 999
 """`create_log` gives up after NAME.999.jsonl: a folder of a thousand restarts needs a person, not another file."""
 CLOSE_TIMEOUT_S = 2.0
