@@ -441,6 +441,26 @@ class ControlConfig:
         "Largest duty magnitude the integral term may contribute (anti-windup bound); at most 1, full duty.",
         in_range(0.0, 1.0),
     )
+    stall_timeout_s: float = setting(
+        0.5,
+        "A wheel driven more than stall_duty_margin beyond its feed-forward while it turns at less than a tenth of its"
+        " set-point (a dead encoder, a blocked wheel) for this long has stalled: every motor stops until a fresh"
+        " command.",
+        in_range(0.05, 5.0),
+    )
+    stall_duty_margin: float = setting(
+        0.15,
+        "How far beyond the feed-forward duty the PID must push a wheel before it can count as stalled; below"
+        " integral_limit, else the wound-up integral could never reach it.",
+        in_range(0.01, 1.0),
+    )
+
+    def __post_init__(self) -> None:
+        if self.ki > 0.0 and 0.0 < self.integral_limit <= self.stall_duty_margin:
+            raise ValueError(
+                f"stall_duty_margin ({self.stall_duty_margin}) must be below integral_limit ({self.integral_limit}):"
+                " a wheel with a dead encoder would wind the integral up to integral_limit and never count as stalled"
+            )
 
 
 @dataclass(frozen=True, slots=True)

@@ -9,7 +9,8 @@ woken at once, so a command reaches the motors without waiting for the next peri
 a status at 1 Hz; the health task pings systemd's watchdog only while the control loop and the filter keep ticking.
 
 Exit paths: SIGTERM or SIGINT ends the TaskGroup and `run()` returns 0; an exception in any task cancels the
-others and `run()` returns 1 (systemd restarts the service). Either way the motors are zeroed before anything else
+others and `run()` returns 1 (systemd restarts the service): an operational one (a device or pigpiod gone) is logged
+in one line, any other (a bug) at ERROR with its traceback. Either way the motors are zeroed before anything else
 is torn down. A pigpiod that goes away is re-connected with backoff; the motors are driven again only after a
 command that arrived after the reconnection.
 """
@@ -28,17 +29,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
+import pigpio
+
 from drivers.encoders import EncoderSource, PigpioEncoders, WheelTicks
 from drivers.marvelmind.events import Event as MarvelmindEvent
 from drivers.marvelmind.events import FixUnavailable, Position
 from drivers.marvelmind.reader import MarvelmindReader
 from drivers.motors import GpiozeroMotors, MotorOutputs
+from drivers.pigpio_link import PigpioCommandError
+from drivers.pigpio_protocol import ProtocolError
 from robotd import logfile, posesock
 from robotd.config import RobotdConfig
-from robotd.control import MotionController
+from robotd.control import MotionController, StallFault
 from robotd.estimator import Estimator
 from robotd.kinematics import Geometry, Twist
 from robotd.periodstats import PeriodStats
+from robotd.recorder import Recorder, create_log, daemon_meta
 from robotd.sdnotify import Notifier
 from robotd.teleop import StopCommand, TeleopMessage, receiver_from_config
 from robotd.teleop_socket import TeleopSocket, open_teleop
@@ -48,6 +54,11 @@ log = logging.getLogger("robotd")
 ZERO = (0.0, 0.0, 0.0, 0.0)
 STOP = Twist(0.0, 0.0, 0.0)
 STATUS_PERIOD_S = 1.0
+UNKNOWN_SPEEDS = (math.nan, math.nan, math.nan, math.nan)
+
+# What the world can do to a running daemon: a device, a socket or pigpiod gone, a command refused. Logged in one line;
+# anything else is a bug, logged with its traceback.
+OPERATIONAL_ERRORS: tuple[type[BaseException], ...] = (OSError, PigpioCommandError, ProtocolError, pigpio.error)
 
 
 class _Shutdown(Exception):  # noqa: N818 - a signal, not an error
@@ -92,7 +103,11 @@ class Daemon:
         self.geometry = Geometry(robot.wheel_radius_m, robot.lx_m, robot.ly_m)
         self.estimator = Estimator(config.ekf, self.geometry, robot.ips_offset_m, config.encoders.counts_per_rev)
         self.controller = MotionController(
-            self.geometry, config.control, config.teleop, duty_limit=config.motors.duty_limit
+            self.geometry,
+            config.control,
+            config.teleop,
+            duty_limit=config.motors.duty_limit,
+            on_fault=self._on_stall_fault,
         )
         self.encoders = encoders if encoders is not None else PigpioEncoders(config.encoders, config.pigpiod, clock)
         self._motors_factory = motors_factory or (lambda: GpiozeroMotors(config.motors, config.pigpiod))
@@ -118,14 +133,19 @@ class Daemon:
         self._odometry_state = "waiting"
         self._motors_ready_after = -math.inf
         self._motors_lost = asyncio.Event()
-        self._counters: dict[str, int] = {"control_steps": 0, "motor_failures": 0, "teleop_commands": 0}
+        self._counters: dict[str, int] = {
+            "control_steps": 0, "motor_failures": 0, "teleop_commands": 0, "stall_faults": 0,
+        }  # fmt: skip
         self._recorder = self._open_recorder(record)
 
     # --- producers' callbacks (on the loop) -----------------------------------------------------------------
 
     def _on_ticks(self, ticks: WheelTicks) -> None:
         self.estimator.on_wheels(ticks.t, ticks.ticks)
-        self._wheel_speeds = ticks.speeds_rad_s
+        # while the encoder stream is lost the speeds read 0 without meaning it: unknown (NaN) makes the PID drive
+        # open-loop rather than wind up against wheels it cannot see, and keeps the stall guard from blaming them
+        lost = ticks.degraded and not any(ticks.speeds_rad_s)
+        self._wheel_speeds = UNKNOWN_SPEEDS if lost else ticks.speeds_rad_s
         self._odometry_state = "degraded" if ticks.degraded else "ok"
         self._alive.filter = self.clock()
         if self._recorder is not None:
@@ -170,6 +190,8 @@ class Daemon:
             loop.add_signal_handler(signum, stop.set)
         status = 1
         transport: TeleopSocket | None = None
+        if self._recorder is not None:
+            self._recorder.start()
         try:
             await self._connect_motors()
             Path(self.config.pose_socket.path).parent.mkdir(parents=True, exist_ok=True)
@@ -192,10 +214,8 @@ class Daemon:
                          self.config.teleop.port, self.config.pose_socket.path)  # fmt: skip
         except* _Shutdown:
             status = 0
-        except* Exception as group:
-            for error in group.exceptions:
-                log.error("robotd stopping after a failure: %s: %s", type(error).__name__, error)
-                log.debug("failure", exc_info=error)
+        except* Exception as group:  # noqa: BLE001 - any failure ends the daemon; _log_failures says which, how
+            self._log_failures(group)
         finally:
             self._zero_motors()  # first, whatever happened
             self.notifier.stopping("stopping")
@@ -206,9 +226,20 @@ class Daemon:
             await self.pose_server.close()
             self._close_motors()
             if self._recorder is not None:
-                self._recorder.flush()
+                self._recorder.close()
             self.notifier.close()
         return status
+
+    @staticmethod
+    def _log_failures(group: BaseExceptionGroup[Exception]) -> None:
+        """One line for each operational failure; a bug's traceback at ERROR, where journald keeps it."""
+        for error in _leaves(group):
+            if isinstance(error, OPERATIONAL_ERRORS):
+                log.error("robotd stopping after a failure: %s: %s", type(error).__name__, error)
+            else:
+                log.error(
+                    "robotd stopping after an unexpected error: %s: %s", type(error).__name__, error, exc_info=error
+                )
 
     @staticmethod
     async def _until(stop: asyncio.Event) -> None:
@@ -296,8 +327,6 @@ class Daemon:
             if now >= next_status:
                 next_status = now + self.status_period_s
                 self.pose_server.publish(self._status_message(now))
-                if self._recorder is not None:
-                    self._recorder.flush()
 
     def _publish_pose(self) -> None:
         now = self.clock()
@@ -341,9 +370,12 @@ class Daemon:
                 **self._counters,
                 "state": self.controller.last.state.value,
                 "period": self.control_periods.summary(),
+                "faults": self._control_faults(),
             },
             "pose_socket": dict(self.pose_server.counters),
         }
+        if self._recorder is not None:
+            drivers["recorder"] = self._recorder.counters()
         return posesock.status_message(
             t=now, stamp=time.time(), drivers=drivers, filter_diagnostics=dict(self.estimator.counters)
         )
@@ -368,27 +400,51 @@ class Daemon:
                 f"control {self.controller.last.state.value}, {self.pose_server.clients} pose clients"
             )
 
-    def _open_recorder(self, stream: TextIO | None) -> logfile.LogWriter | None:
-        if stream is None:
-            return None
-        robot = self.config.robot
-        meta = logfile.Meta(
-            robot={
-                "wheel_radius": robot.wheel_radius_m,
-                "lx": robot.lx_m,
-                "ly": robot.ly_m,
-                "counts_per_rev": self.config.encoders.counts_per_rev,
-                "ips_offset": list(robot.ips_offset_m),
-            },
-            source="robotd run --record",
-        )
-        return logfile.LogWriter(stream, meta)
+    def _on_stall_fault(self, fault: StallFault | None) -> None:
+        """The controller latched a stall fault (motors off) or cleared it on a fresh command: say so once."""
+        if fault is None:
+            log.info("control: stall fault cleared by a fresh command; driving again")
+            return
+        self._counters["stall_faults"] += 1
+        log.warning(
+            "control: %s driven hard but not turning for %.2f s (dead encoder or blocked wheel?): all motors stopped"
+            " until a fresh command (let go, then command again)",
+            ", ".join(fault.wheels), self.config.control.stall_timeout_s,
+        )  # fmt: skip
+
+    def _control_faults(self) -> list[dict[str, Any]]:
+        """The faults holding the motors off, for the status message."""
+        fault = self.controller.fault
+        if fault is None:
+            return []
+        return [{"kind": "stall", "wheels": list(fault.wheels), "since": fault.since}]
+
+    def _open_recorder(self, stream: TextIO | None) -> Recorder | None:
+        return None if stream is None else Recorder(stream, daemon_meta(self.config))
+
+
+def _leaves(group: BaseExceptionGroup[Exception]) -> list[Exception]:
+    """The exceptions of a group, nested groups flattened."""
+    leaves: list[Exception] = []
+    for error in group.exceptions:
+        if isinstance(error, BaseExceptionGroup):
+            leaves += _leaves(error)
+        else:
+            leaves.append(error)
+    return leaves
 
 
 def run_daemon(config: RobotdConfig, record_path: Path | None = None) -> int:
-    """Run the daemon in a fresh event loop; returns the process exit status."""
+    """Run the daemon in a fresh event loop; returns the process exit status.
+
+    `record_path` names the sensor log to create (never an existing file: see `robotd.recorder.create_log`, which
+    raises RecordingError when it cannot).
+    """
     if record_path is None:
         return asyncio.run(Daemon(config).run())
-    record_path.parent.mkdir(parents=True, exist_ok=True)
-    with record_path.open("w", encoding="utf-8") as record:
-        return asyncio.run(Daemon(config, record=record).run())
+    record, created = create_log(record_path)
+    if created != record_path:
+        log.info("recording to %s: %s exists and is kept", created, record_path)
+    else:
+        log.info("recording to %s", created)
+    return asyncio.run(Daemon(config, record=record).run())

@@ -247,6 +247,8 @@ def running_robot(
         seed_args = [] if seed is None else ["--seed", str(seed)]
         children.start("robotd vhw", ["vhw", "--config", str(config_path), *seed_args], out / "vhw.log")
         _wait_for(device.exists, 20.0, "the virtual robot", children)
+        # the demo replaces its own outputs: the daemon never overwrites a log, it would record to run.1.jsonl
+        (out / "run.jsonl").unlink(missing_ok=True)
         children.start(
             "robotd run",
             ["run", "--config", str(config_path), "--record", str(out / "run.jsonl")],

@@ -4,18 +4,24 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from pathlib import Path
 
 from robotd.config import load
 
 DEFAULT_CONFIG = "/etc/robotd/robot.yaml"
+EX_CANTCREAT = 73  # sysexits.h: the sensor log cannot be created
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `robotd run`."""
     run = subparsers.add_parser("run", help="run the daemon: odometry + IPS fusion, teleop, pose socket")
     run.add_argument("--config", default=DEFAULT_CONFIG, help=f"configuration file (default {DEFAULT_CONFIG})")
-    run.add_argument("--record", metavar="LOG.jsonl", help="write every sensor event to this sensor log")
+    run.add_argument(
+        "--record",
+        metavar="LOG.jsonl",
+        help="write every sensor event to this sensor log; an existing log is kept (LOG.1.jsonl... is written instead)",
+    )
     run.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     run.set_defaults(handler=run_daemon_command)
 
@@ -31,8 +37,13 @@ def run_daemon_command(args: argparse.Namespace) -> int:
     """Validate the configuration (exit 78 when bad), then run the daemon until stopped."""
     from robotd.daemon import run_daemon  # noqa: PLC0415 - keeps `robotd --help` fast
     from robotd.preflight import preflight  # noqa: PLC0415
+    from robotd.recorder import RecordingError  # noqa: PLC0415 - same
 
     config = load(args.config)
     preflight(config)  # the key file and the bind address, as `robotd check-config` checks them
     configure_logging(args.verbose)
-    return run_daemon(config, Path(args.record) if args.record else None)
+    try:
+        return run_daemon(config, Path(args.record) if args.record else None)
+    except RecordingError as error:  # before anything started: nothing to stop
+        print(f"robotd run: --record: {error}", file=sys.stderr)
+        return EX_CANTCREAT

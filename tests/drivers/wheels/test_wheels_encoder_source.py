@@ -19,15 +19,24 @@ from drivers.sim.quadrature_signal import encoder_words, merge_streams, position
 from drivers.sim.vpigpiod import VirtualPigpiod
 from robotd.config import EncodersConfig, PigpiodConfig
 
-NEAR_WRAP = (1 << 32) - 30_000  # the stream crosses pigpio's tick wrap-around within the test
+# The virtual pigpiod starts 5 s before pigpio's 32-bit tick wraps, and the test stamps its edges from 40 ms before the
+# wrap: the stream crosses it however long a busy machine takes to connect (a start 30 ms before the wrap, with edges
+# stamped at the present tick, missed it once the connection took longer than that).
+NEAR_WRAP = (1 << 32) - 5_000_000
+BEFORE_WRAP = (1 << 32) - 40_000
 
 
 def drive_wheels(
-    server: VirtualPigpiod, encoders: EncodersConfig, moves: list[list[int]], spacing_us: int = 20
+    server: VirtualPigpiod,
+    encoders: EncodersConfig,
+    moves: list[list[int]],
+    spacing_us: int = 20,
+    start: int | None = None,
 ) -> np.ndarray:
-    """Drive each wheel through its +1/-1 edge moves, starting from the pins' present state, interleaved in time."""
+    """Drive each wheel through its +1/-1 edge moves, starting from the pins' present state, interleaved in time, from
+    tick `start` (default: a millisecond from now)."""
     streams, mask, levels = [], 0, 0
-    start = server.tick() + 1000
+    start = server.tick() + 1000 if start is None else start
     for index, encoder in enumerate(wiring(encoders)):
         a, b = server.level(encoder.a), server.level(encoder.b)
         levels |= a << encoder.a | b << encoder.b
@@ -73,7 +82,8 @@ async def test_counts_through_the_socket_are_exact_across_the_tick_wrap(decoding
         published: list[WheelTicks] = []
         task = asyncio.create_task(source.run(published.append))
         await eventually(lambda: source.connected)
-        driven = drive_wheels(server, encoders, MOVES)
+        assert server.tick() < BEFORE_WRAP, "the test took 5 s to connect: the stream would be stamped in the past"
+        driven = drive_wheels(server, encoders, MOVES, start=BEFORE_WRAP)
         total_edges = sum(len(m) for m in MOVES)
         await eventually(lambda: source.counters.reports == total_edges)
         await eventually(lambda: len(published) >= 2)
