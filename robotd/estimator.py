@@ -3,8 +3,7 @@
 Theory of operation
 - Inputs (wheel ticks or body twists) make prediction steps on the odometry track (robotd.track). Ticks are exact
   displacements: they are accumulated and become one step at their mean twist at most every `predict_period_s`.
-  A twist is a sample held until the next. A replay's estimator (robotd.estimates.ReplayEstimator) may take a
-  whole log's samples at once: the same steps, made in one numpy pass, revealed as the samples are fed.
+  A twist is a sample held until the next.
 - Fixes leave anchors on the track (robotd.history): the state at any time is the newest anchor before it carried
   forward in O(1). A fix measured at `t_meas` in the past is fused at that time, from the state there; the anchors
   after it are made again (a late fix lands exactly where an on-time one would, at a cost that does not depend on
@@ -38,7 +37,6 @@ from robotd.wheelsteps import TickKinematics, WheelFeed
 
 # An initial heading standard deviation above this says the heading is unknown (the robot was put down anywhere).
 HEADING_KNOWN_SIGMA_RAD = 0.5
-TRIM_ANCHORS = 64  # a replay trims its anchors when it has this many
 TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
 
 
@@ -130,8 +128,6 @@ class Estimator:
     def on_wheels(self, t: float, ticks: tuple[int, int, int, int]) -> None:
         """Cumulative encoder counts (FL FR RL RR) at time t."""
         wheels = self._wheels
-        if wheels.loaded is not None:
-            raise RuntimeError("wheel samples were loaded with load_wheels: feed them with on_wheel_samples")
         if not wheels.accepts(t):
             self.counters["dropped_out_of_order" if math.isfinite(t) else "dropped_non_finite"] += 1
             return
@@ -142,8 +138,6 @@ class Estimator:
 
     def on_twist(self, t: float, vx: float, vy: float, wz: float) -> None:
         """A measured body twist (m/s, rad/s) at time t, held until the next one."""
-        if self._wheels.loaded is not None:
-            raise RuntimeError("wheel samples were loaded with load_wheels: no twist samples can be added")
         if not (math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(wz)):
             self.counters["dropped_non_finite"] += 1
             return
@@ -189,7 +183,7 @@ class Estimator:
     def _pending(self) -> Twist3:
         """The twist beyond the newest step: that of the samples fed since (their mean), or the one in force."""
         track, vis = self._track, self._history.visible
-        u = self._wheels.pending(vis)
+        u = self._wheels.pending()
         if u is not None:
             return u
         if not vis:
@@ -242,8 +236,6 @@ class Estimator:
         history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
-        if len(anchors) > TRIM_ANCHORS and self._wheels.loaded is not None:
-            history.trim(newest_step, self._pending)  # (fed one by one, the steps trim the anchors: _step_to)
         if aligner.enabled and vis and self._track.dist[vis - 1] >= aligner.next_fit:
             self._maybe_realign()
         return Diagnostics(

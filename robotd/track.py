@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import bisect
 import math
-from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
@@ -34,7 +33,6 @@ import numpy.typing as npt
 
 from robotd import ekf
 
-BULK_STEPS = 1000  # an extend of this many steps or more keeps its totals as an array
 UNKNOWN_HEADING_CORRELATION_S = 0.1  # how long a velocity error from an unknown heading persists: a fix interval
 
 FloatArray = npt.NDArray[np.float64]
@@ -64,17 +62,6 @@ SUMS = (
 )
 
 
-@dataclass(frozen=True, slots=True)
-class StepTwists:
-    """Steps to add: end times, the twist over each step, and the twist held after each (for extrapolation)."""
-
-    t: FloatArray
-    vx: FloatArray
-    vy: FloatArray
-    wz: FloatArray
-    held: tuple[FloatArray, FloatArray, FloatArray]
-
-
 class OdometryTrack:
     """Prediction steps in time order, the odometry-only pose after each, and the running totals of their noise.
 
@@ -98,7 +85,6 @@ class OdometryTrack:
         self.dist: list[float] = []  # distance travelled since the track began
         # per step, the running totals of SUMS in that order (an array when a whole log's steps came at once)
         self.sums: list[list[float]] | FloatArray = []
-        self._chunks: list[TrackArrays] = []  # the same columns as arrays, one entry per start or extend
 
     def __len__(self) -> int:
         return len(self.t)
@@ -117,22 +103,6 @@ class OdometryTrack:
         self.hw.append(held[2])
         self.dist.append(0.0)
         self.sums = [[0.0] * len(SUMS)]
-        zero, one = np.zeros(1), np.ones(1)
-        self._chunks = [
-            TrackArrays(
-                one * t,
-                zero,
-                zero,
-                zero,
-                one * held[0],
-                one * held[1],
-                one * held[2],
-                zero,
-                zero,
-                zero,
-                np.zeros((1, len(SUMS))),
-            )
-        ]
 
     def hold(self, held: tuple[float, float, float]) -> None:
         """Change the twist held after the newest step (a twist sample at its time)."""
@@ -153,7 +123,6 @@ class OdometryTrack:
         listed: list[list[float]] = self.sums.tolist() if isinstance(self.sums, np.ndarray) else self.sums
         listed.append([total + step for total, step in zip(previous, increments, strict=True)])
         self.sums = listed
-        self._chunks = []  # the arrays are made again from the lists when asked for (arrays)
         self.t.append(t)
         self.vx.append(vx)
         self.vy.append(vy)
@@ -166,58 +135,6 @@ class OdometryTrack:
         self.oth.append(heading + wz * dt)
         self.dist.append(self.dist[-1] + math.hypot(vx, vy) * dt)
 
-    def extend(self, steps: StepTwists) -> None:
-        """Add steps (end times strictly increasing, after the newest step): the odometry pose and totals after each."""
-        n = len(steps.t)
-        if n == 0:
-            return
-        t_prev = np.empty(n)
-        t_prev[0] = self.t[-1]
-        t_prev[1:] = steps.t[:-1]
-        dt = steps.t - t_prev
-        vx, vy, wz = steps.vx, steps.vy, steps.wz
-        turn = np.empty(n + 1)
-        turn[0] = self.oth[-1]
-        turn[1:] = wz * dt
-        oth = np.cumsum(turn)  # oth[k] is the heading before step k, oth[k + 1] after it
-        dx, dy, c, s = displacement(vx, vy, wz, dt, oth[:-1], midpoint=self.midpoint, lib=np)
-        ox = np.cumsum(np.concatenate(([self.ox[-1]], dx)))[1:]
-        oy = np.cumsum(np.concatenate(([self.oy[-1]], dy)))[1:]
-        qxx, qxy, qyy, qtt = ekf.process_noise_terms(vx, vy, wz, dt, (c, s), self.noise, lib=np)
-        totals = np.array(self.sums[-1])
-        before = totals[0] + np.concatenate(([0.0], np.cumsum(qtt)[:-1]))  # qtt total before each step
-        increments = _increments(qxx, qxy, qyy, qtt, (-dy, dx), (-oy, ox), before, (vx, vy, dt))
-        table = np.empty((n + 1, len(SUMS)))
-        table[0] = totals
-        for column, values in enumerate(increments):
-            table[1:, column] = values
-        totals_after = np.cumsum(table, axis=0)[1:]
-        if n >= BULK_STEPS and len(self.sums) == 1:
-            # a whole log's steps: the totals stay an array (read only for long runs of steps: across)
-            self.sums = np.concatenate((np.array(self.sums), totals_after))
-        else:
-            listed: list[list[float]] = self.sums.tolist() if isinstance(self.sums, np.ndarray) else self.sums
-            listed.extend(totals_after.tolist())
-            self.sums = listed
-        oth_after = oth[1:]
-        if self._chunks:
-            self._chunks.append(
-                TrackArrays(
-                    steps.t, vx, vy, wz, steps.held[0], steps.held[1], steps.held[2], ox, oy, oth_after, totals_after
-                )
-            )
-        self.t.extend(steps.t.tolist())
-        self.vx.extend(vx.tolist())
-        self.vy.extend(vy.tolist())
-        self.wz.extend(wz.tolist())
-        self.hx.extend(steps.held[0].tolist())
-        self.hy.extend(steps.held[1].tolist())
-        self.hw.extend(steps.held[2].tolist())
-        self.ox.extend(ox.tolist())
-        self.oy.extend(oy.tolist())
-        self.oth.extend(oth_after.tolist())
-        self.dist.extend(np.cumsum(np.concatenate(([self.dist[-1]], np.hypot(vx, vy) * dt)))[1:].tolist())
-
     def drop_before(self, step: int) -> None:
         """Forget the steps before step number `step` (they can no longer be propagated from)."""
         cut = step - self.first
@@ -227,7 +144,6 @@ class OdometryTrack:
             del column[:cut]
         del self.dist[:cut]
         self.sums = self.sums[cut:]
-        self._chunks = []
         self.first = step
 
     def twist_at(self, t: float, visible: int) -> tuple[float, float, float] | None:
@@ -288,54 +204,6 @@ class OdometryTrack:
         if isinstance(sums, np.ndarray):  # once: rows read one by one are faster from lists
             sums = self.sums = sums.tolist()
         return sums[b], sums[j]
-
-    def arrays(self) -> TrackArrays:
-        """The columns as arrays, for evaluating many states at once (a track that was never trimmed)."""
-        if self.first:
-            raise RuntimeError("a trimmed track has no arrays")
-        chunks = self._chunks
-        if not chunks:  # steps were added one at a time: the arrays come from the lists
-            a = np.array
-            chunks.append(
-                TrackArrays(
-                    a(self.t),
-                    a(self.vx),
-                    a(self.vy),
-                    a(self.wz),
-                    a(self.hx),
-                    a(self.hy),
-                    a(self.hw),
-                    a(self.ox),
-                    a(self.oy),
-                    a(self.oth),
-                    np.array(self.sums, dtype=np.float64).reshape(-1, len(SUMS)),
-                )
-            )
-        if len(chunks) > 1:
-            joined = [np.concatenate([getattr(chunk, name) for chunk in chunks]) for name in TrackArrays.__slots__]
-            chunks[:] = [TrackArrays(*joined)]
-        whole = chunks[0]
-        # the twist held after the newest step may have changed since it was added (hold)
-        whole.hx[-1], whole.hy[-1], whole.hw[-1] = self.hx[-1], self.hy[-1], self.hw[-1]
-        return whole
-
-
-@dataclass(frozen=True, slots=True)
-class TrackArrays:
-    """OdometryTrack's columns as arrays (sums: one row of SUMS per step)."""
-
-    t: FloatArray
-    vx: FloatArray
-    vy: FloatArray
-    wz: FloatArray
-    hx: FloatArray
-    hy: FloatArray
-    hw: FloatArray
-    ox: FloatArray
-    oy: FloatArray
-    oth: FloatArray
-    sums: FloatArray
-
 
 def displacement(vx: Any, vy: Any, wz: Any, dt: Any, heading: Any, *, midpoint: bool, lib: ModuleType) -> Any:
     """A step's displacement (dx, dy) in the odometry frame from `heading` before it, and the cos and sin used (eq. 5
@@ -446,8 +314,6 @@ __all__ = [
     "UNKNOWN_HEADING_CORRELATION_S",
     "OdometryTrack",
     "State",
-    "StepTwists",
-    "TrackArrays",
     "carry",
     "displacement",
     "unknown_heading_variance",

@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
-import math
 import random
 from pathlib import Path
 
@@ -16,14 +15,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from log_reference import reference_lines
 
-from robotd import deadreckoning, ekf, kinematics, logfile, synthlog
-from robotd.config import RobotdConfig, parse
-from robotd.estimates import ReplayEstimator
-from robotd.estimator import Estimator, TrackState
-from robotd.logfile import IpsFix, IpsLost, LogWriter, SensorLog, Truth, TwistSample, Wheels
-from robotd.metrics import TruthTrack, score
-from robotd.replay import OUTPUT_PERIOD_S, replay
-from robotd.wheelsteps import PERIOD_SLACK_S, TickKinematics
+from robotd import ekf, kinematics, logfile, synthlog
+from robotd.config import parse
+from robotd.logfile import IpsFix, LogWriter, SensorLog, Truth
+from robotd.replay import replay
 
 GEOMETRY = kinematics.Geometry()
 CPR = 6800
@@ -153,159 +148,6 @@ def test_any_damage_to_standard_lines_is_read_as_json_would(edits: list[tuple[in
         position = position_pick % (len(line) - 1)
         lines[index] = line[:position] + ("" if delete else char) + line[position + 1 :]
     _assert_same(logfile.parse_lines(lines), reference_lines(lines))
-
-
-def _wheel_stream(seed: int) -> list[tuple[float, tuple[int, int, int, int]]]:
-    rng = random.Random(seed)
-    t, ticks = 0.0, [0, 0, 0, 0]
-    out = []
-    for _ in range(600):
-        t += rng.choice((0.01, 0.01, 0.013, 0.0, -0.02))  # repeats and steps back: dropped samples
-        ticks = [n + rng.randint(-5, 40) for n in ticks]
-        sample_t = math.nan if rng.random() < 0.01 else t
-        out.append((sample_t, (ticks[0], ticks[1], ticks[2], ticks[3])))
-    return out
-
-
-@pytest.mark.parametrize("period", [0.0, 0.05, 0.2])
-def test_batched_wheel_samples_equal_one_call_per_sample(period: float) -> None:
-    config = dataclasses.replace(RobotdConfig().ekf, predict_period_s=period)
-    one = Estimator(config, GEOMETRY, (0.05, 0.0), CPR)
-    batch = ReplayEstimator(config, GEOMETRY, (0.05, 0.0), CPR)
-    samples = _wheel_stream(8)
-    times = [t for t, _ in samples]
-    ticks = [k for _, k in samples]
-    rng = random.Random(9)
-    start = 0
-    for i, (t, k) in enumerate(samples):
-        one.on_wheels(t, k)
-        if rng.random() < 0.08 or i == len(samples) - 1:  # a fix or a pose between runs of samples
-            batch.on_wheel_samples(times, ticks, start, i + 1)
-            start = i + 1
-            if math.isfinite(t) and rng.random() < 0.5:
-                for est in (one, batch):
-                    est.on_fix(t, 0.01 * i, 0.0, t - 0.05)
-            a, b = one.pose(t if math.isfinite(t) else None), batch.pose(t if math.isfinite(t) else None)
-            assert a == b
-    assert one.counters == batch.counters
-    assert one.counters["dropped_out_of_order"] > 0
-    assert one.counters["dropped_non_finite"] > 0
-
-
-def test_vectorised_dead_reckoning_equals_the_sequential_estimator() -> None:
-    _, events = synthlog.generate(synthlog.SynthSpec(loops=2), 5)
-    wheels = [e for e in events if isinstance(e, Wheels)]
-    t = np.array([w.t for w in wheels])
-    ticks = np.array([w.ticks for w in wheels], dtype=np.int64)
-    config = dataclasses.replace(RobotdConfig().ekf, initial_pose=(0.0, 0.0, 0.0))
-    est = Estimator(config, GEOMETRY, (0.0, 0.0), CPR)
-    rng = random.Random(2)
-    record_t, record_after, expected = [], [], []
-    for when, after in [(-1.0, 0), (0.0, 0)]:  # records before any sample: the initial pose
-        record_t.append(when)
-        record_after.append(after)
-        expected.append((0.0, 0.0, 0.0))
-    for i, w in enumerate(wheels):
-        est.on_wheels(w.t, w.ticks)
-        if rng.random() < 0.3:
-            when = w.t + rng.choice((0.0, 0.004, -0.03))  # at the sample, between samples, and before it
-            pose = est.pose(when)
-            record_t.append(when)
-            record_after.append(i + 1)
-            expected.append((pose.x, pose.y, pose.theta))
-    assert deadreckoning.applies(t)
-    x, y, th = deadreckoning.poses_at(
-        t, ticks, np.array(record_t), np.array(record_after), GEOMETRY, CPR, config.predict_period_s
-    )
-    reference = np.array(expected)
-    assert np.max(np.abs(x - reference[:, 0])) < 1e-9
-    assert np.max(np.abs(y - reference[:, 1])) < 1e-9
-    assert np.max(np.abs(np.array([ekf.wrap_angle(v) for v in th - reference[:, 2]]))) < 1e-9
-    assert np.max(np.hypot(x, y)) > 1.0  # it did drive somewhere
-
-
-def _replay_event_by_event(log: SensorLog, config: RobotdConfig) -> dict[str, list[tuple[float, ...]]]:
-    """The replay written plainly: every event through the Estimator's per-event interface, three Estimators."""
-    robotd = Estimator(config.ekf, GEOMETRY, (0.1, -0.05), CPR)
-    paper = Estimator.paper_filter(config.ekf, GEOMETRY, CPR)
-    odometry = Estimator(dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0)), GEOMETRY, (0.1, -0.05), CPR)
-    tracks: dict[str, list[tuple[float, ...]]] = {"ekf": [], "paper": [], "odometry": []}
-    named = (("ekf", robotd), ("paper", paper), ("odometry", odometry))
-
-    def record(t: float) -> None:
-        for name, est in named:
-            pose = est.pose(t)
-            if est is odometry or pose.state is not TrackState.INITIALISING:
-                tracks[name].append((t, pose.x, pose.y, pose.theta))
-
-    last_out = -math.inf
-    for event in log.events:
-        if isinstance(event, Wheels):
-            for _, est in named:
-                est.on_wheels(event.t, event.ticks)
-        elif isinstance(event, TwistSample):
-            for _, est in named:
-                est.on_twist(event.t, event.vx, event.vy, event.wz)
-        elif isinstance(event, IpsFix):
-            robotd.on_fix(event.t, event.x, event.y, event.t_meas)
-            paper.on_fix(event.t, event.x, event.y, event.t_meas)
-            continue  # outputs are taken at inputs (the log has some)
-        else:
-            if isinstance(event, IpsLost):
-                robotd.on_fix_lost(event.t)
-            continue
-        if event.t - last_out >= OUTPUT_PERIOD_S - PERIOD_SLACK_S:
-            record(event.t)
-            last_out = event.t
-    return tracks
-
-
-def _as_twists(events: list[logfile.Event]) -> list[logfile.Event]:
-    """The log with each wheel sample replaced by the mean twist of its ticks since the previous one."""
-    out: list[logfile.Event] = []
-    last: Wheels | None = None
-    for event in events:
-        if not isinstance(event, Wheels):
-            out.append(event)
-            continue
-        if last is not None:
-            vx, vy, wz = TickKinematics(GEOMETRY, CPR).twist(last.ticks, event.ticks, event.t - last.t)
-            out.append(TwistSample(event.t, vx, vy, wz))
-        last = event
-    return out
-
-
-@pytest.mark.parametrize("inputs", ["wheels", "wheels and twists", "twists"])
-def test_the_replay_equals_feeding_every_event_to_the_estimators(inputs: str) -> None:
-    spec = synthlog.SynthSpec(loops=1, ips_offset_m=(0.1, -0.05), outlier_bursts_per_min=6.0)
-    meta, events = synthlog.generate(spec, 17)
-    if inputs == "wheels and twists":  # a twist sample now and then: the odometry then runs as a third Estimator
-        events = [*events]
-        for k in range(100, len(events), 400):
-            events.insert(k, TwistSample(events[k - 1].t, 0.3, 0.0, 0.0))
-    elif inputs == "twists":  # twists alone: loaded at once, as wheels are
-        events = _as_twists(events)
-    log = SensorLog(meta=meta, events=events)
-    config = parse("")
-    result = replay(log, config)
-    plain = _replay_event_by_event(log, config)
-    for name, track in (("ekf", result.ekf), ("paper", result.paper)):
-        got = np.array([track.t, track.x, track.y, track.theta]).T
-        assert got.shape == np.array(plain[name]).shape
-        assert np.max(np.abs(got - np.array(plain[name]))) < 1e-9, name
-    # odometry: the replay placed its track on the true start; the same placement of the plain one must agree
-    odo = np.array(plain["odometry"])
-    assert len(result.odometry.t) == len(odo)
-    assert result.metrics is not None
-    truth = TruthTrack.from_samples([(e.t, e.x, e.y, e.theta) for e in events if isinstance(e, Truth)])
-    stats = score(truth, result.odometry.t, result.odometry.x, result.odometry.y, result.odometry.theta)
-    assert stats == result.metrics["odometry"]
-    x0, y0, th0, _ = truth.at(odo[:1, 0])
-    c, s = math.cos(th0[0]), math.sin(th0[0])
-    placed_x = x0[0] + odo[:, 1] * c - odo[:, 2] * s
-    placed_y = y0[0] + odo[:, 1] * s + odo[:, 2] * c
-    assert np.max(np.abs(placed_x - np.array(result.odometry.x))) < 1e-9
-    assert np.max(np.abs(placed_y - np.array(result.odometry.y))) < 1e-9
 
 
 def test_estimates_file_lines_are_the_specified_json(tmp_path: Path) -> None:

@@ -7,13 +7,11 @@ import math
 import random
 
 import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from robotd import ekf, kinematics
 from robotd.config import EkfConfig
-from robotd.estimates import ReplayEstimator
 from robotd.estimator import Estimator
 from robotd.fixgate import FixGate
 from robotd.history import Predictor
@@ -141,41 +139,6 @@ def test_a_fix_arriving_after_a_later_measured_one_lands_in_its_place() -> None:
     assert all(math.isclose(u, v, abs_tol=1e-12) for u, v in zip(a.cov, b.cov, strict=True))
 
 
-def test_a_long_outage_keeps_the_daemons_history_short_and_the_same_estimate() -> None:
-    """Fed one sample at a time, the estimator trims its track; loaded at once it keeps all: the same outputs."""
-    rng = random.Random(4)
-    times = [0.01 * (i + 1) for i in range(30_000)]  # 5 minutes at 100 Hz
-    ticks: list[tuple[int, int, int, int]] = []
-    counts = [0, 0, 0, 0]
-    for _ in times:
-        counts = [c + d for c, d in zip(counts, (10, 12, 11, 9), strict=True)]
-        ticks.append((counts[0], counts[1], counts[2], counts[3]))
-    fixes = {int(k): (0.01 * k + 0.005, rng.gauss(0, 0.02), rng.gauss(0, 0.02)) for k in range(12, 2000, 12)}
-    config = dataclasses.replace(EkfConfig(), initial_sigma=(1.0, 1.0, 0.1))
-    daemon = Estimator(config, GEOMETRY, (0.0, 0.0), CPR)
-    replayed = ReplayEstimator(config, GEOMETRY, (0.0, 0.0), CPR)
-    assert replayed.load_wheels(np.array(times), np.array(ticks, dtype=np.int64))
-    longest = prev = 0
-    for i, (t, k) in enumerate(zip(times, ticks, strict=True)):
-        daemon.on_wheels(t, k)
-        if i in fixes:  # fixes for 20 s, then none: a long outage
-            arrival, fx, fy = fixes[i]
-            replayed.on_wheel_samples(times, ticks, prev, i + 1)
-            prev = i + 1
-            for est in (daemon, replayed):
-                est.on_fix(arrival, fx, fy, t - 0.05)
-        longest = max(longest, len(daemon._track))
-    replayed.on_wheel_samples(times, ticks, prev, len(times))
-    replayed.mark_samples(np.array([len(times) - 1], dtype=np.int64))
-    _, x, y, _th, cov = replayed.marked()
-    ours = daemon.position(times[-1])
-    assert ours is not None
-    assert longest < 1000  # 50 s of steps at most, not 5 minutes' 6000
-    assert math.isclose(ours[0], x[0], abs_tol=1e-6)
-    assert math.isclose(ours[1], y[0], abs_tol=1e-6)
-    assert np.allclose(ours[3], cov[0], rtol=1e-6, atol=0.0)
-
-
 @given(st.lists(st.floats(-1.0, 1.0, allow_nan=False), min_size=1, max_size=120))
 def test_the_noise_estimates_running_median_is_the_median_of_the_window(values: list[float]) -> None:
     gate = FixGate(
@@ -188,20 +151,3 @@ def test_the_noise_estimates_running_median_is_the_median_of_the_window(values: 
         assert gate._ordered == window
 
 
-@pytest.mark.parametrize(("noise", "midpoint"), [(NOISE, True), (PAPER_NOISE, False)])
-def test_steps_added_one_at_a_time_equal_steps_added_together(noise: ekf.ControlNoise, midpoint: bool) -> None:
-    rng = random.Random(8)
-    t = np.cumsum([rng.uniform(0.01, 0.2) for _ in range(300)])
-    vx, vy, wz = (np.array([rng.uniform(-0.5, 0.5) for _ in range(300)]) for _ in range(3))
-    together, one_by_one = OdometryTrack(noise, midpoint=midpoint), OdometryTrack(noise, midpoint=midpoint)
-    for track in (together, one_by_one):
-        track.start(0.0, (0.0, 0.0, 0.0))
-    together.extend(StepTwists(t, vx, vy, wz, (vx, vy, wz)))
-    for k in range(len(t)):
-        u = (float(vx[k]), float(vy[k]), float(wz[k]))
-        one_by_one.append(float(t[k]), u, u)
-    for name in ("t", "ox", "oy", "oth", "dist", "hx"):
-        assert np.allclose(getattr(together, name), getattr(one_by_one, name), rtol=1e-12, atol=1e-12), name
-    assert np.allclose(np.array(together.sums), np.array(one_by_one.sums), rtol=1e-10, atol=1e-15)
-    whole, rebuilt = together.arrays(), one_by_one.arrays()
-    assert np.allclose(whole.sums, rebuilt.sums, rtol=1e-10, atol=1e-15)
