@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from robotd import ekf, kinematics
-from robotd.config import RobotdConfig
+from robotd.config import RobotdConfig, paper_preset
 from robotd.estimates_file import write_estimates
 from robotd.estimator import Diagnostics, Estimator
 from robotd.logfile import IpsFix, IpsLost, SensorLog, Truth, TwistSample, Wheels
@@ -134,7 +134,7 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     events = log.events
     scored = any(type(e) is Truth for e in events)  # the baselines exist only to be scored
     robotd = Estimator(config.ekf, geometry, offset, cpr)
-    paper = Estimator.paper_filter(config.ekf, geometry, cpr) if scored else None
+    paper = Estimator(paper_preset(config.ekf), geometry, offset, cpr) if scored else None
     odometry = None
     if scored:
         odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later

@@ -1,12 +1,11 @@
 """Wheel samples into prediction steps: which samples end a step, and the body twist of the ticks between two samples.
 
 Ticks are exact displacements: a step's twist is the wheels' mean angular speed over it through the forward
-kinematics (paper eq. 1). """
+kinematics (paper eq. 1)."""
 
 from __future__ import annotations
 
 import math
-from typing import Any
 
 from robotd import kinematics
 
@@ -20,21 +19,17 @@ class TickKinematics:
     """Ticks over an interval to the body twist (vx, vy, wz) in m/s and rad/s (paper eq. 1, FL FR RL RR)."""
 
     def __init__(self, geometry: kinematics.Geometry, counts_per_rev: int) -> None:
+        self.geometry = geometry
         self.radians_per_count = 2.0 * math.pi / counts_per_rev
-        self._r4 = geometry.wheel_radius_m / 4.0
-        self._r4k = geometry.wheel_radius_m / (4.0 * (geometry.lx_m + geometry.ly_m))
 
     def twist(self, start: Ticks, end: Ticks, dt: float) -> tuple[float, float, float]:
         """The mean twist of the ticks from `start` to `end` over dt > 0 seconds."""
         k = self.radians_per_count / dt
-        twist: tuple[float, float, float] = self._forward(
-            (end[0] - start[0]) * k, (end[1] - start[1]) * k, (end[2] - start[2]) * k, (end[3] - start[3]) * k
+        twist = kinematics.forward(
+            self.geometry,
+            ((end[0] - start[0]) * k, (end[1] - start[1]) * k, (end[2] - start[2]) * k, (end[3] - start[3]) * k),
         )
-        return twist
-
-    def _forward(self, w1: Any, w2: Any, w3: Any, w4: Any) -> Any:
-        # kinematics.forward (eq. 1)
-        return self._r4 * (w1 + w2 + w3 + w4), self._r4 * (-w1 + w2 + w3 - w4), self._r4k * (-w1 + w2 - w3 + w4)
+        return twist.vx, twist.vy, twist.wz
 
 
 class WheelFeed:

@@ -34,9 +34,8 @@ def _robotd_steps(seq: list[tuple[float, float, float, float, float, float]]) ->
     p = ekf.cov_diag(1.0, 1.0, 0.1)
     r = 0.03**2
     start = time.perf_counter()
-    for vx, vy, wz, dt, nx, ny in seq:
-        q = ekf.process_noise(th, vx, vy, wz, dt, noise)
-        x, y, th, p = ekf.predict(x, y, th, p, vx, vy, wz, dt, q)
+    for vx, vy, wz, dt, nx, ny in seq:  # the calls the estimator makes (robotd.history.Predictor, Estimator.on_fix)
+        x, y, th, p = ekf.predict(x, y, th, p, vx, vy, wz, dt, noise, midpoint=True)
         inn = ekf.innovation(x, y, th, p, x + nx, y + ny, r, 0.05, 0.0)
         x, y, th, p = ekf.update(x, y, th, p, inn, r)
     return time.perf_counter() - start
