@@ -23,10 +23,12 @@ import numpy as np
 
 from robotd import ekf, kinematics
 from robotd.config import RobotdConfig, paper_preset
-from robotd.estimates_file import write_estimates
+from robotd.ekf import Cov, wrap_angle
+from robotd.estimates import write_estimates
 from robotd.estimator import Diagnostics, Estimator
+from robotd.heading import fit_rotation
 from robotd.logfile import IpsFix, IpsLost, SensorLog, Truth, TwistSample, Wheels
-from robotd.metrics import ErrorStats, TruthTrack, fit_rotation, score, score_fixes
+from robotd.metrics import ErrorStats, Trajectory, fixes_trajectory, score
 from robotd.wheelsteps import PERIOD_SLACK_S
 
 OUTPUT_PERIOD_S = 0.05  # the daemon's default pose rate (pose_socket.rate_hz: 20)
@@ -34,8 +36,8 @@ METHODS = ("odometry", "ips", "paper_ekf", "ekf")
 
 
 @dataclass(slots=True)
-class Track:
-    """A method's estimates over time; `cov` (P's upper triangle: xx, xy, xt, yy, yt, tt) is empty for odometry."""
+class _Estimates:
+    """A method's estimates as they are taken: columns, and the covariances (P's upper triangle) of the filters."""
 
     t: list[float] = field(default_factory=list)
     x: list[float] = field(default_factory=list)
@@ -53,17 +55,22 @@ class Track:
         if p is not None:
             self.cov.append(p)
 
+    def trajectory(self) -> Trajectory:
+        """The poses as a Trajectory."""
+        return Trajectory.of(self.t, self.x, self.y, self.theta)
+
 
 @dataclass(slots=True)
 class ReplayResult:
-    """What a replay produced: robotd's estimates, every method's track and score, counters and problems.
+    """What a replay produced: every method's estimates and score, robotd's covariances, counters and problems.
 
     Without truth in the log, `paper` and `odometry` are empty and `metrics` is None.
     """
 
-    ekf: Track
-    paper: Track
-    odometry: Track
+    ekf: Trajectory
+    ekf_cov: list[Cov]  # P's upper triangle, one per estimate of robotd's filter
+    paper: Trajectory
+    odometry: Trajectory
     fixes: list[tuple[float, float, float]]
     metrics: dict[str, ErrorStats | None] | None
     counters: dict[str, int]
@@ -132,7 +139,9 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     """
     geometry, offset, cpr, problems = robot_from_log(log, config)
     events = log.events
-    scored = any(type(e) is Truth for e in events)  # the baselines exist only to be scored
+    truth_samples = [(e.t, e.x, e.y, e.theta) for e in events if isinstance(e, Truth)]
+    truth = Trajectory.from_samples(truth_samples) if truth_samples else None
+    scored = truth is not None  # the baselines exist only to be scored
     robotd = Estimator(config.ekf, geometry, offset, cpr)
     paper = Estimator(paper_preset(config.ekf), geometry, offset, cpr) if scored else None
     odometry = None
@@ -140,9 +149,8 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
         odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later
         odometry = Estimator(odo_config, geometry, offset, cpr)
     filters = tuple(est for est in (robotd, paper, odometry) if est is not None)
-    tracks = (Track(), Track(), Track())
-    odometry_track = tracks[2]
-    outputs = [(tracks[0], robotd)] + ([(tracks[1], paper)] if paper is not None else [])
+    taken = (_Estimates(), _Estimates(), _Estimates())  # robotd's, the paper's, odometry's
+    outputs = [(taken[0], robotd)] + ([(taken[1], paper)] if paper is not None else [])
     # an output every OUTPUT_PERIOD_S of input time (wheel samples, twists; fixes only in a log without inputs)
     inputs = any(type(e) is Wheels or type(e) is TwistSample for e in events)
     fixes: list[tuple[float, float, float]] = []
@@ -174,27 +182,28 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
         t = event.t
         if t - last_out >= OUTPUT_PERIOD_S - PERIOD_SLACK_S:
             last_out = t
-            for track, est in outputs:
+            for estimates, est in outputs:
                 position = est.position(t)
                 if position is not None:
-                    track.append(t, position)
+                    estimates.append(t, position)
             if odometry is not None:  # never placed by a fix: the initial pose carried
                 pose = odometry.pose(t)
-                odometry_track.append(t, (pose.x, pose.y, pose.theta, None))
+                taken[2].append(t, (pose.x, pose.y, pose.theta, None))
+    _place_odometry(taken[2], truth)
+    ours, papers, odometry_alone = (estimates.trajectory() for estimates in taken)
     metrics = None
-    if scored:
-        reference = TruthTrack.from_samples([(e.t, e.x, e.y, e.theta) for e in events if isinstance(e, Truth)])
-        _place_odometry(tracks[2], reference)
+    if truth is not None:
         metrics = {
-            "odometry": score(reference, tracks[2].t, tracks[2].x, tracks[2].y, tracks[2].theta),
-            "ips": score_fixes(reference, fixes, offset),
-            "paper_ekf": score(reference, tracks[1].t, tracks[1].x, tracks[1].y, tracks[1].theta),
-            "ekf": score(reference, tracks[0].t, tracks[0].x, tracks[0].y, tracks[0].theta),
+            "odometry": score(truth, odometry_alone),
+            "ips": score(truth, fixes_trajectory(fixes, offset, truth)),
+            "paper_ekf": score(truth, papers),
+            "ekf": score(truth, ours),
         }
     return ReplayResult(
-        ekf=tracks[0],
-        paper=tracks[1],
-        odometry=tracks[2],
+        ekf=ours,
+        ekf_cov=taken[0].cov,
+        paper=papers,
+        odometry=odometry_alone,
         fixes=fixes,
         metrics=metrics,
         counters=dict(robotd.counters),
@@ -207,32 +216,25 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     )
 
 
-def _place(track: Track, x0: float, y0: float, theta0: float) -> None:
-    """Move a track computed from (0, 0, 0) so that it starts at (x0, y0, theta0)."""
-    c, s = math.cos(theta0), math.sin(theta0)
-    for i in range(len(track.t)):
-        x, y = track.x[i], track.y[i]
-        track.x[i], track.y[i] = x0 + x * c - y * s, y0 + x * s + y * c
-        track.theta[i] = (track.theta[i] + theta0 + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def _place_odometry(track: Track, truth: TruthTrack) -> None:
-    """Put the odometry track on the true initial pose (evaluation only: the filters never see truth)."""
-    if not track.t:
+def _place_odometry(odometry: _Estimates, truth: Trajectory | None) -> None:
+    """Put the odometry track, computed from (0, 0, 0), on the true initial pose (evaluation only: the filters never
+    see truth); without a true heading, turned by the rotation that best lays its first metre onto the truth."""
+    if not odometry.t or truth is None:
         return
-    t0 = np.array([track.t[0]])
-    x0, y0, th0, _ = truth.at(t0)
+    x0, y0, th0, _ = truth.at(np.array(odometry.t[:1]))
     theta0 = float(th0[0])
     if not math.isfinite(theta0):
-        # no true heading: the rotation that best lays the first metre of odometry onto the truth
         travelled = 0.0
         end = 1
-        while end < len(track.t) and travelled < 1.0:
-            travelled += math.hypot(track.x[end] - track.x[end - 1], track.y[end] - track.y[end - 1])
+        while end < len(odometry.t) and travelled < 1.0:
+            travelled += math.hypot(odometry.x[end] - odometry.x[end - 1], odometry.y[end] - odometry.y[end - 1])
             end += 1
-        tx, ty, _, _ = truth.at(np.array(track.t[:end]))
-        theta0 = fit_rotation(list(zip(track.x[:end], track.y[:end], strict=True)), list(zip(tx, ty, strict=True)))[0]
-    _place(track, float(x0[0]), float(y0[0]), theta0)
+        tx, ty, _, _ = truth.at(np.array(odometry.t[:end]))
+        theta0 = fit_rotation(odometry.x[:end], odometry.y[:end], tx.tolist(), ty.tolist())[0]
+    c, s = math.cos(theta0), math.sin(theta0)
+    for i, (x, y) in enumerate(zip(odometry.x, odometry.y, strict=True)):
+        odometry.x[i], odometry.y[i] = float(x0[0]) + x * c - y * s, float(y0[0]) + x * s + y * c
+        odometry.theta[i] = wrap_angle(odometry.theta[i] + theta0)
 
 
 def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
@@ -240,9 +242,10 @@ def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     written = [out_dir / "estimates.jsonl"]
     e = result.ekf
-    cov = np.asarray(e.cov, dtype=np.float64).reshape(-1, 6)[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]]  # ekf.cov_full
     with open(written[0], "wb") as stream:
-        write_estimates(stream, e.t, e.x, e.y, e.theta, cov)
+        write_estimates(
+            stream, zip(e.t.tolist(), e.x.tolist(), e.y.tolist(), e.theta.tolist(), result.ekf_cov, strict=True)
+        )
     if result.metrics is not None:
         metrics = {name: (stats.as_dict() if stats is not None else None) for name, stats in result.metrics.items()}
         written.append(out_dir / "metrics.json")
@@ -280,7 +283,6 @@ def format_table(result: ReplayResult) -> str:
 __all__ = [
     "METHODS",
     "ReplayResult",
-    "Track",
     "cyclic_gc_paused",
     "format_table",
     "replay",

@@ -52,12 +52,10 @@ def _replay(args: argparse.Namespace, config: RobotdConfig) -> int:
     written = write_outputs(result, Path(args.out))
     elapsed = time.perf_counter() - started
     print(format_table(result))
-    columns = log.columns()
-    if len(columns):
-        first, last = columns.time_span()
-        span = last - first
+    if log.events:
+        span = log.events[-1].t - log.events[0].t
         rate = span / max(elapsed, 1e-9)
-        print(f"{len(columns)} events, {span:.1f} s of log in {elapsed:.2f} s ({rate:.0f}x real time)")
+        print(f"{len(log.events)} events, {span:.1f} s of log in {elapsed:.2f} s ({rate:.0f}x real time)")
     print("wrote " + ", ".join(str(path) for path in written))
     return 0
 
