@@ -10,12 +10,9 @@ log without truth runs robotd's filter alone (their tracks stay empty).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import gc
 import json
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -80,22 +77,6 @@ class ReplayResult:
     geometry: kinematics.Geometry
     ips_offset: tuple[float, float]
     counts_per_rev: int
-
-
-@contextlib.contextmanager
-def cyclic_gc_paused() -> Iterator[None]:
-    """Pause Python's cyclic garbage collector for a replay (restored after, as it was).
-
-    A replay builds a few hundred thousand long-lived objects and no reference cycles: the collector's passes over
-    them would be pure cost (a fifth of the run).
-    """
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
 
 
 def robot_from_log(
@@ -283,7 +264,6 @@ def format_table(result: ReplayResult) -> str:
 __all__ = [
     "METHODS",
     "ReplayResult",
-    "cyclic_gc_paused",
     "format_table",
     "replay",
     "robot_from_log",

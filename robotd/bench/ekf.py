@@ -18,7 +18,7 @@ from drivers.sim.world import geometry_of, scenario_params
 from robotd import cli, ekf
 from robotd.config import load, parse
 from robotd.logfile import LogWriter, Truth, TwistSample, Wheels, read_log
-from robotd.replay import cyclic_gc_paused, replay, write_outputs
+from robotd.replay import replay, write_outputs
 from robotd.wheelsteps import TickKinematics
 
 NAME = "ekf"
@@ -128,14 +128,13 @@ def write_hour_logs(folder: Path, loops: int) -> tuple[float, dict[str, Path]]:
 
 def _replay_stages(log_path: Path, out: Path) -> tuple[float, float, float]:
     """Seconds spent reading, replaying and writing, each on its own (to see where the time goes)."""
-    with cyclic_gc_paused():  # as the command
-        start = time.perf_counter()
-        log = read_log(log_path)
-        read = time.perf_counter()
-        result = replay(log, parse(""))
-        replayed = time.perf_counter()
-        write_outputs(result, out)
-        return read - start, replayed - read, time.perf_counter() - replayed
+    start = time.perf_counter()
+    log = read_log(log_path)
+    read = time.perf_counter()
+    result = replay(log, parse(""))
+    replayed = time.perf_counter()
+    write_outputs(result, out)
+    return read - start, replayed - read, time.perf_counter() - replayed
 
 
 def _replay_seconds(log_path: Path, out: Path, runs: int) -> float:

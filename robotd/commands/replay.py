@@ -10,7 +10,7 @@ from pathlib import Path
 from robotd import librsf
 from robotd.config import RobotdConfig, load, parse
 from robotd.logfile import read_log
-from robotd.replay import cyclic_gc_paused, format_table, replay, write_outputs
+from robotd.replay import format_table, replay, write_outputs
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -33,11 +33,6 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 def run_replay(args: argparse.Namespace) -> int:
     """Replay the log, write the outputs, print the table; 1 when the log cannot be read."""
     config: RobotdConfig = load(args.config) if args.config else parse("")
-    with cyclic_gc_paused():
-        return _replay(args, config)
-
-
-def _replay(args: argparse.Namespace, config: RobotdConfig) -> int:
     started = time.perf_counter()
     try:
         log = read_log(args.log)
