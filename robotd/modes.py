@@ -1,27 +1,28 @@
 """The estimator's modes and their transitions, as tables: where the position and the heading stand. Pure.
 
-Position (what the fixes have done):
+Position, moved by each fix's verdict (robotd.fixgate):
 
-    INITIALISING --SEEDED--> TRACKING <--ACCEPTED, RECOVERED-- REJECTING
-         |                      |  ^                              ^
-         +------ACCEPTED--------+  +-----------GATED--------------+ (and back with ACCEPTED or RECOVERED)
+    INITIALISING --SEEDED, ACCEPTED--> TRACKING --GATED--> REJECTING --ACCEPTED, RECOVERED--> TRACKING
 
-  INITIALISING until agreeing fixes seed the position (or the first fix, when no seeding is configured); a fix beyond
-  the gate makes it REJECTING, an accepted or recovered one TRACKING again.
+  INITIALISING until agreeing fixes seed the position (or, with no seeding configured, until the first fix is fused);
+  a fix beyond the gate makes it REJECTING; an accepted fix, or rejected fixes that agreed long enough (RECOVERED,
+  the position re-seeded on them), make it TRACKING again.
 
-Heading (what driving has shown about the heading):
+Heading, moved by each trustworthy rotation fit of a window of travel (robotd.heading), * marking the transitions
+that take the window's heading:
 
-    UNKNOWN --WHOLE_WINDOW (taken)--> ALIGNED --AGREES--> CONFIRMED --DISAGREES--> SUSPECT
-                                         |  ^                 ^  ^                   |
-                                         +--+ DISAGREES       |  +------AGREES-------+
-                                           (taken)            +--DISAGREES_AGAIN (taken)--+
+    UNKNOWN   --WHOLE_WINDOW*-->    ALIGNED
+    ALIGNED   --AGREES-->           CONFIRMED     ALIGNED   --DISAGREES*-->      ALIGNED
+    CONFIRMED --AGREES-->           CONFIRMED     CONFIRMED --DISAGREES-->       SUSPECT
+    SUSPECT   --AGREES-->           CONFIRMED     SUSPECT   --DISAGREES-->       SUSPECT
+    SUSPECT   --DISAGREES_AGAIN*--> CONFIRMED
+    any       --RECOVERED (a fix's verdict)-->    UNKNOWN
 
   UNKNOWN at start when the configured initial heading is uncertain, and after every recovery (a robot carried off
-  may have been turned): the position then follows the fixes, and the first trustworthy fit of a whole window of
-  travel gives the heading. ALIGNED: the heading is known but no window has agreed with it yet; a window that
-  disagrees is taken at once. CONFIRMED: a window agreed. SUSPECT: after that, one window disagreed (an echo can
-  bend one window); the next decides, taken only if it disagrees the same way. A recovery (RECOVERED) makes any
-  heading UNKNOWN.
+  may have been turned): the position then follows the fixes, and the first trustworthy fit of a whole window gives
+  the heading. ALIGNED: known, but no window has agreed with it yet; a window that disagrees is taken at once.
+  CONFIRMED: a window agreed. SUSPECT: after that, one window disagreed (an echo can bend one window); the next
+  decides, and is taken only if it disagrees the same way.
 """
 
 from __future__ import annotations
