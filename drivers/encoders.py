@@ -1,4 +1,4 @@
-"""Wheel encoders read from pigpiod's notification stream in bulk on the event loop, and the per-edge baseline.
+"""Wheel encoders read from pigpiod's notification stream in bulk on the event loop.
 
 Theory of operation: `PigpioEncoders` configures the encoder pins over a command socket (input, pull, glitch
 filter), opens a second socket with NOIB and starts notifications (NB) for the eight pins. pigpiod then writes a
@@ -22,16 +22,16 @@ import asyncio
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 
 from drivers.notify_stream import SequenceGaps, TickClock
 from drivers.pigpio_link import PigpioCommandError, PigpiodUnavailableError, PigpioLink, open_notifications
 from drivers.pigpio_protocol import REPORT_SIZE, Cmd, Mode, Pull, decode_reports
-from drivers.quadrature import EdgeTimedSpeed, EncoderWiring, QuadratureDecoder, transition_table
+from drivers.quadrature import EdgeTimedSpeed, EncoderWiring, QuadratureDecoder
 from robotd.config import WHEELS, EncodersConfig, PigpiodConfig
 
 log = logging.getLogger("robotd.encoders")
@@ -273,58 +273,3 @@ class PigpioEncoders:
         c = self._decoder.counts
         s = [float(v) for v in speeds]
         return WheelTicks(now, (int(c[0]), int(c[1]), int(c[2]), int(c[3])), (s[0], s[1], s[2], s[3]), degraded)
-
-
-class EdgeDecoder:
-    """Quadrature decoding one edge at a time in Python: the state machine a `pi.callback` per edge would run."""
-
-    def __init__(self, encoders: Sequence[EncoderWiring], decoding: str, initial_levels: int) -> None:
-        table = transition_table(decoding)  # type: ignore[arg-type]
-        self._table = [int(step) for step in table]
-        self._wheel_of: dict[int, tuple[int, int]] = {}
-        for wheel, encoder in enumerate(encoders):
-            self._wheel_of[encoder.a] = (wheel, 2)  # A is the high bit of the state
-            self._wheel_of[encoder.b] = (wheel, 1)
-        self._signs = [e.sign for e in encoders]
-        self._states = [((initial_levels >> e.a) & 1) << 1 | ((initial_levels >> e.b) & 1) for e in encoders]
-        self.counts = [0] * len(encoders)
-
-    def on_edge(self, gpio: int, level: int, _tick: int) -> None:
-        """pigpio callback signature: one GPIO changed to `level` at `tick`."""
-        wheel, bit = self._wheel_of[gpio]
-        previous = self._states[wheel]
-        state = (previous | bit) if level else (previous & ~bit)
-        self._states[wheel] = state
-        self.counts[wheel] += self._table[previous * 4 + state] * self._signs[wheel]
-
-
-class CallbackEncoders:
-    """The per-edge baseline: pigpio's client library calls `EdgeDecoder.on_edge` from its thread for every edge.
-
-    Kept only to benchmark against; it cannot keep up with four encoders at speed on a Pi 4.
-    """
-
-    def __init__(self, encoders: EncodersConfig, pigpiod: PigpiodConfig) -> None:
-        import pigpio  # noqa: PLC0415 - only the baseline needs the blocking client
-
-        self._pi: Any = pigpio.pi(pigpiod.host, pigpiod.port, show_errors=False)
-        if not self._pi.connected:
-            raise PigpiodUnavailableError(pigpiod.host, pigpiod.port, "pigpio client could not connect")
-        encoder_wiring = wiring(encoders)
-        for encoder in encoder_wiring:
-            for gpio in (encoder.a, encoder.b):
-                self._pi.set_mode(gpio, pigpio.INPUT)
-                self._pi.set_pull_up_down(gpio, int(_PULLS[encoders.pull]))
-                self._pi.set_glitch_filter(gpio, encoders.glitch_filter_us)
-        self.decoder = EdgeDecoder(encoder_wiring, encoders.decoding, self._pi.read_bank_1())
-        self._callbacks = [
-            self._pi.callback(gpio, pigpio.EITHER_EDGE, self.decoder.on_edge)
-            for encoder in encoder_wiring
-            for gpio in (encoder.a, encoder.b)
-        ]
-
-    def close(self) -> None:
-        """Cancel the callbacks and disconnect."""
-        for callback in self._callbacks:
-            callback.cancel()
-        self._pi.stop()

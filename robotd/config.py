@@ -7,7 +7,9 @@ Wheel order everywhere: front_left, front_right, rear_left, rear_right (the pape
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -228,7 +230,8 @@ class EkfConfig:
     """The Extended Kalman Filter fusing odometry with IPS fixes (robotd/ekf.py, robotd/estimator.py).
 
     Odometry noise is a random walk that grows with distance travelled and angle turned, never with time alone:
-    a robot at rest does not grow uncertain. The `paper_*` keys are used only by the paper's filter as published.
+    a robot at rest does not grow uncertain. The `paper_*` keys are used only by the paper's filter as published
+    (`paper_preset`).
     """
 
     initial_pose: tuple[float, float, float] = setting((0.0, 0.0, 0.0), "Initial x (m), y (m), theta (rad).")
@@ -238,6 +241,15 @@ class EkfConfig:
         " the position then follows the fixes until a whole heading_align_m of driving gives the heading. Set it"
         " small (0.1) only when the robot always starts facing initial_pose's theta.",
         each(positive),
+    )
+    unknown_heading_sigma_rad: float = setting(
+        0.5, "An initial_sigma theta above this means the heading is unknown until driving gives it.", positive
+    )
+    seed_fixes: int = setting(
+        3,
+        "Fixes that must agree with each other to place the position at start (a first fix may be an outlier); 0:"
+        " the initial pose is trusted and fixes are judged from the first.",
+        in_range(0, 100),
     )
     ips_sigma_m: float = setting(0.03, "Standard deviation of one IPS fix in x and y (paper's s_ips).", positive)
     gating: bool = setting(True, "Reject fixes whose Mahalanobis distance exceeds the chi-square gate.")
@@ -267,6 +279,15 @@ class EkfConfig:
         "Wheel ticks are integrated into one prediction at most this often (0: every sample); the body "
         "displacement is exact either way, the midpoint heading keeps turns exact to second order.",
         in_range(0.0, 0.5),
+    )
+    midpoint_heading: bool = setting(
+        True, "Move each prediction step along its midpoint heading (false: the heading at its start, Euler's step)."
+    )
+    step_sigma_v_mps: float = setting(
+        0.0, "Speed noise std per prediction step on vx and vy, whatever the motion (the paper's eq. 9).", non_negative
+    )
+    step_sigma_w_rad_s: float = setting(
+        0.0, "Turn-rate noise std per prediction step, whatever the motion (the paper's eq. 9).", non_negative
     )
     lever_arm: bool = setting(True, "Model the beacon's lever arm (robot.ips_offset_m): the fix depends on theta.")
     latency_compensation: bool = setting(
@@ -312,6 +333,30 @@ class EkfConfig:
     )
     paper_sigma_w_rad_s: float = setting(
         0.2, "Paper's filter: eq. 9's turn-rate noise std per prediction step.", non_negative
+    )
+
+
+def paper_preset(ekf: EkfConfig) -> EkfConfig:
+    """The paper's filter as published, from a configuration: every fix fused on arrival as it comes (no seeding, no
+    gate, no latency compensation, no lever arm, R = ips_sigma_m^2 fixed), Euler steps with eq. 9's per-step noise
+    (paper_sigma_*), the configured initial heading taken as known and never re-aligned."""
+    return dataclasses.replace(
+        ekf,
+        unknown_heading_sigma_rad=math.inf,
+        seed_fixes=0,
+        gating=False,
+        odom_along_sigma_m=0.0,
+        odom_across_sigma_m=0.0,
+        slip_heading_sigma_rad=0.0,
+        turn_heading_sigma_rad=0.0,
+        midpoint_heading=False,
+        step_sigma_v_mps=ekf.paper_sigma_v_mps,
+        step_sigma_w_rad_s=ekf.paper_sigma_w_rad_s,
+        lever_arm=False,
+        latency_compensation=False,
+        adaptive_ips_noise=False,
+        heading_align_m=0.0,
+        heading_min_speed_mps=0.0,
     )
 
 
@@ -553,4 +598,4 @@ def config_reference() -> str:
     return reference(RobotdConfig)
 
 
-__all__ = ["WHEELS", "ConfigError", "RobotdConfig", "config_reference", "load", "parse"]
+__all__ = ["WHEELS", "ConfigError", "RobotdConfig", "config_reference", "load", "paper_preset", "parse"]

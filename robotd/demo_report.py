@@ -14,12 +14,11 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from robotd import plots
 from robotd.config import RobotdConfig
 from robotd.experiment import PAPER_MAX_M, FigureData, Run, score_log
 from robotd.experiment_report import write_figures
 from robotd.logfile import read_log
-from robotd.metrics import ErrorStats, TruthTrack, score
+from robotd.metrics import ErrorStats, Trajectory, score
 
 LABELS = {
     "odometry": "odometry alone (replayed)",
@@ -29,7 +28,7 @@ LABELS = {
 }
 
 
-def live_track(poses_path: Path) -> plots.Track:
+def live_track(poses_path: Path) -> Trajectory:
     """The pose stream the daemon published, as a track."""
     rows = []
     with poses_path.open(encoding="utf-8") as stream:
@@ -38,15 +37,14 @@ def live_track(poses_path: Path) -> plots.Track:
             if None not in (pose["x"], pose["y"], pose["theta"]):
                 rows.append((pose["t"], pose["x"], pose["y"], pose["theta"]))
     arr = np.array(rows, dtype=np.float64).reshape(-1, 4)
-    return plots.Track(arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3])
+    return Trajectory(arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3])
 
 
-def live_run(replayed: Run, live: plots.Track) -> Run:
+def live_run(replayed: Run, live: Trajectory) -> Run:
     """The replayed run with robotd's EKF replaced by the live pose stream, scored against the same truth."""
     assert replayed.figures is not None
     truth = replayed.figures.truth
-    reference = TruthTrack(truth.t, truth.x, truth.y, truth.theta)
-    stats = score(reference, live.t.tolist(), live.x.tolist(), live.y.tolist(), live.theta.tolist())
+    stats = score(truth, live)
     metrics = {**replayed.metrics, "ekf": stats}
     figures = FigureData(truth, {**replayed.figures.methods, "ekf": live})
     return dataclasses.replace(replayed, metrics=metrics, figures=figures)

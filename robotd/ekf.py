@@ -5,7 +5,8 @@ The covariance P is symmetric, so it travels as its six upper-triangle entries (
 symmetry then holds by construction and a 3x3 step costs a few dozen float multiplications instead of a dozen
 numpy calls (a 3x3 filter in numpy is all per-call overhead).
 
-Process model, eq. 5 (Euler step over dt, as the paper's dead reckoning eq. 2):
+Process model, eq. 5 (an Euler step over dt, as the paper's dead reckoning eq. 2; robotd evaluates the heading at
+the step's midpoint, theta + wz dt / 2, which keeps turns exact to second order):
 
     x' = x + (vx cos(theta) - vy sin(theta)) dt
     y' = y + (vx sin(theta) + vy cos(theta)) dt
@@ -31,20 +32,23 @@ P = (I - K H) P (I - K H)^T + K R K^T (Joseph form: stays symmetric positive def
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
-from types import ModuleType
-from typing import Any, NamedTuple
+from typing import NamedTuple, TypeVar
+
+import numpy as np
+import numpy.typing as npt
 
 Cov = tuple[float, float, float, float, float, float]
 """A symmetric 3x3 covariance as its upper triangle: (xx, xy, xt, yy, yt, tt)."""
 
 TWO_PI = 2.0 * math.pi
+Angle = TypeVar("Angle", float, npt.NDArray[np.float64])
 
 
-def wrap_angle(angle: float) -> float:
-    """The same angle in [-pi, pi)."""
-    return (angle + math.pi) % TWO_PI - math.pi
+def wrap_angle(angle: Angle) -> Angle:
+    """The same angle in [-pi, pi): a float, or each element of an array."""
+    wrapped: Angle = (angle + math.pi) % TWO_PI - math.pi
+    return wrapped
 
 
 def cov_full(p: Cov) -> tuple[float, float, float, float, float, float, float, float, float]:
@@ -64,152 +68,65 @@ class ControlNoise:
 
     With speed = hypot(vx, vy), the variances added over one step are
     along-track position: lin2 * speed * dt (m^2), heading: (slip2 * speed + turn2 * |wz|) * dt (rad^2),
-    plus a per-step (dt^2) term on the commanded speeds: rel2 * v^2 * dt^2 (the paper's form, eq. 9).
-    A robot at rest does not grow uncertain.
+    plus a constant per-step (dt^2) term on the speeds, const_v2 and const_w2 (the paper's eq. 9).
+    A robot at rest does not grow uncertain unless the per-step term says so.
     """
 
     lin2: float = 0.0
     lat2: float = 0.0
     slip2: float = 0.0
     turn2: float = 0.0
-    rel2: float = 0.0
     const_v2: float = 0.0
     const_w2: float = 0.0
 
 
-def process_noise(  # noqa: PLR0917 - as predict
-    theta: float, vx: float, vy: float, wz: float, dt: float, noise: ControlNoise
-) -> Cov:
-    """Q = G M G^T for one step, with M scaled by the motion (see ControlNoise)."""
-    if dt <= 0.0:
-        return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    qxx, qxy, qyy, qtt = process_noise_terms(vx, vy, wz, dt, (math.cos(theta), math.sin(theta)), noise, lib=math)
-    return (qxx, qxy, 0.0, qyy, 0.0, qtt)
-
-
-def process_noise_terms(  # noqa: PLR0917 - a step's parts, as floats or arrays
-    vx: Any, vy: Any, wz: Any, dt: Any, cs: tuple[Any, Any], noise: ControlNoise, *, lib: ModuleType
-) -> Any:
-    """Q's non-zero terms (qxx, qxy, qyy, qtt) for steps of dt > 0 at a heading of cosine and sine `cs`: floats with
-    lib=math, arrays of many steps with numpy. (Q's heading cross terms are zero.)"""
-    speed = lib.hypot(vx, vy)
-    inv_dt = 1.0 / dt
-    # Variances of the control errors over this step; the random-walk terms grow with distance, not time,
-    # so they enter M divided by dt (G carries dt twice).
-    m_vx = noise.lin2 * speed * inv_dt + noise.rel2 * vx * vx + noise.const_v2
-    m_vy = noise.lat2 * speed * inv_dt + noise.rel2 * vy * vy + noise.const_v2
-    m_wz = (noise.slip2 * speed + noise.turn2 * abs(wz)) * inv_dt + noise.rel2 * wz * wz + noise.const_w2
-    c, s = cs
-    dt2 = dt * dt
-    cc, ss = c * c, s * s
-    return dt2 * (cc * m_vx + ss * m_vy), dt2 * c * s * (m_vx - m_vy), dt2 * (ss * m_vx + cc * m_vy), dt2 * m_wz
+def displacement(
+    vx: float, vy: float, wz: float, dt: float, theta: float, *, midpoint: bool
+) -> tuple[float, float, float, float]:
+    """A step's displacement (dx, dy) in the world from heading theta before it (eq. 5: at the midpoint heading
+    theta + wz dt / 2, or at theta, the paper's Euler step), and the cosine and sine of the heading used."""
+    th = theta + 0.5 * wz * dt if midpoint else theta
+    c, s = math.cos(th), math.sin(th)
+    return (vx * c - vy * s) * dt, (vx * s + vy * c) * dt, c, s
 
 
 def predict(  # noqa: PLR0917 - the paper's symbols as plain floats: no packing in the hot path
-    x: float, y: float, theta: float, p: Cov, vx: float, vy: float, wz: float, dt: float, q: Cov
+    x: float,
+    y: float,
+    theta: float,
+    p: Cov,
+    vx: float,
+    vy: float,
+    wz: float,
+    dt: float,
+    noise: ControlNoise,
+    *,
+    midpoint: bool,
 ) -> tuple[float, float, float, Cov]:
-    """One prediction step: the state through eq. 5 and P through eq. 7, P' = F P F^T + Q."""
-    c, s = math.cos(theta), math.sin(theta)
-    dx = (vx * c - vy * s) * dt  # eq. 5
-    dy = (vx * s + vy * c) * dt
-    a = -dy  # eq. 6: d x'/d theta
-    b = dx  # eq. 6: d y'/d theta
-    xx, xy, xt, yy, yt, tt = p
-    qxx, qxy, qxt, qyy, qyt, qtt = q
-    p_new = (  # eq. 7, F P F^T written out for F = I + (a, b) in the theta column
-        xx + 2.0 * a * xt + a * a * tt + qxx,
-        xy + a * yt + b * xt + a * b * tt + qxy,
-        xt + a * tt + qxt,
-        yy + 2.0 * b * yt + b * b * tt + qyy,
-        yt + b * tt + qyt,
-        tt + qtt,
-    )
-    return x + dx, y + dy, wrap_angle(theta + wz * dt), p_new
-
-
-def predict_with_noise(  # noqa: PLR0917 - as predict
-    x: float, y: float, theta: float, p: Cov, vx: float, vy: float, dt: float, noise: ControlNoise, wz: float
-) -> tuple[float, float, Cov]:
-    """x, y and P of predict(x, y, theta, p, vx, vy, 0, dt, process_noise(theta, vx, vy, wz, dt, noise)), dt > 0.
-
-    The same arithmetic in one call (the estimator's hot path): cos and sin of theta once, no intermediate Q tuple.
-    The heading is the caller's: it integrates it over dt itself (the midpoint rule needs theta at mid-step here).
-    """
-    c, s = math.cos(theta), math.sin(theta)
+    """One prediction step over dt > 0: the state through eq. 5 (see displacement) and P through eq. 7,
+    P' = F P F^T + Q, with F from eq. 6 and Q = G M G^T the control noise of this motion (ControlNoise)."""
+    dx, dy, c, s = displacement(vx, vy, wz, dt, theta, midpoint=midpoint)
     speed = math.hypot(vx, vy)
     inv_dt = 1.0 / dt
-    m_vx = noise.lin2 * speed * inv_dt + noise.rel2 * vx * vx + noise.const_v2
-    m_vy = noise.lat2 * speed * inv_dt + noise.rel2 * vy * vy + noise.const_v2
-    m_wz = (noise.slip2 * speed + noise.turn2 * abs(wz)) * inv_dt + noise.rel2 * wz * wz + noise.const_w2
+    # Variances of the control errors over this step; the random-walk terms grow with distance, not time,
+    # so they enter M divided by dt (G carries dt twice).
+    m_vx = noise.lin2 * speed * inv_dt + noise.const_v2
+    m_vy = noise.lat2 * speed * inv_dt + noise.const_v2
+    m_wz = (noise.slip2 * speed + noise.turn2 * abs(wz)) * inv_dt + noise.const_w2
     dt2 = dt * dt
-    dx = (vx * c - vy * s) * dt  # eq. 5
-    dy = (vx * s + vy * c) * dt
-    a = -dy  # eq. 6
-    b = dx
+    a = -dy  # eq. 6: d x'/d theta
+    b = dx  # eq. 6: d y'/d theta
+    cc, ss = c * c, s * s
     xx, xy, xt, yy, yt, tt = p
-    p_new = (  # eq. 7 with Q = G M G^T (whose theta cross terms are zero)
-        xx + 2.0 * a * xt + a * a * tt + dt2 * (c * c * m_vx + s * s * m_vy),
+    p_new = (  # eq. 7, F P F^T written out for F = I + (a, b) in the theta column, plus Q (its theta cross terms are 0)
+        xx + 2.0 * a * xt + a * a * tt + dt2 * (cc * m_vx + ss * m_vy),
         xy + a * yt + b * xt + a * b * tt + dt2 * c * s * (m_vx - m_vy),
-        xt + a * tt + 0.0,
-        yy + 2.0 * b * yt + b * b * tt + dt2 * (s * s * m_vx + c * c * m_vy),
-        yt + b * tt + 0.0,
+        xt + a * tt,
+        yy + 2.0 * b * yt + b * b * tt + dt2 * (ss * m_vx + cc * m_vy),
+        yt + b * tt,
         tt + dt2 * m_wz,
     )
-    return x + dx, y + dy, p_new
-
-
-MotionStep = Callable[[float, float, float, Cov, float, float, float, float], tuple[float, float, float, Cov]]
-"""(x, y, theta, P, vx, vy, wz, dt) -> (x', y', theta', P') for dt > 0: see motion_step."""
-
-
-def motion_step(noise: ControlNoise, *, midpoint: bool, lib: ModuleType = math) -> MotionStep:
-    """The estimator's prediction step, with the noise's constants bound once (it runs ~200 000 times an hour).
-
-    With lib=numpy the same arithmetic runs on arrays of states and twists (many steps at once; cast the result).
-
-    x', y', P' are predict_with_noise(x, y, th, P, vx, vy, dt, noise, wz) at th = theta + wz dt / 2 (the midpoint
-    rule) or th = theta (the paper's Euler step), the same arithmetic; theta' = wrap_angle(theta + wz dt).
-    Without speed-proportional and constant terms (rel2 = const_v2 = const_w2 = 0, robotd's noise), those terms are
-    left out: they would add exact zeros to non-negative variances.
-    """
-    lin2, lat2, slip2, turn2 = noise.lin2, noise.lat2, noise.slip2, noise.turn2
-    rel2, const_v2, const_w2 = noise.rel2, noise.const_v2, noise.const_w2
-    cos, sin, hypot, pi = lib.cos, lib.sin, lib.hypot, math.pi
-    plain = rel2 == 0.0 and const_v2 == 0.0 and const_w2 == 0.0 and min(lin2, lat2, slip2, turn2) >= 0.0
-
-    def step(  # noqa: PLR0917 - as predict
-        x: float, y: float, theta: float, p: Cov, vx: float, vy: float, wz: float, dt: float
-    ) -> tuple[float, float, float, Cov]:
-        th = theta + 0.5 * wz * dt if midpoint else theta
-        c, s = cos(th), sin(th)
-        speed = hypot(vx, vy)
-        inv_dt = 1.0 / dt
-        if plain:
-            m_vx = lin2 * speed * inv_dt
-            m_vy = lat2 * speed * inv_dt
-            m_wz = (slip2 * speed + turn2 * abs(wz)) * inv_dt
-        else:
-            m_vx = lin2 * speed * inv_dt + rel2 * vx * vx + const_v2
-            m_vy = lat2 * speed * inv_dt + rel2 * vy * vy + const_v2
-            m_wz = (slip2 * speed + turn2 * abs(wz)) * inv_dt + rel2 * wz * wz + const_w2
-        dt2 = dt * dt
-        dx = (vx * c - vy * s) * dt  # eq. 5
-        dy = (vx * s + vy * c) * dt
-        a = -dy  # eq. 6
-        b = dx
-        cc, ss = c * c, s * s
-        xx, xy, xt, yy, yt, tt = p
-        p_new = (  # eq. 7 with Q = G M G^T (whose theta cross terms are zero)
-            xx + 2.0 * a * xt + a * a * tt + dt2 * (cc * m_vx + ss * m_vy),
-            xy + a * yt + b * xt + a * b * tt + dt2 * c * s * (m_vx - m_vy),
-            xt + a * tt + 0.0,
-            yy + 2.0 * b * yt + b * b * tt + dt2 * (ss * m_vx + cc * m_vy),
-            yt + b * tt + 0.0,
-            tt + dt2 * m_wz,
-        )
-        return x + dx, y + dy, (theta + wz * dt + pi) % TWO_PI - pi, p_new
-
-    return step
+    return x + dx, y + dy, wrap_angle(theta + wz * dt), p_new
 
 
 class Innovation(NamedTuple):
@@ -296,16 +213,12 @@ __all__ = [
     "ControlNoise",
     "Cov",
     "Innovation",
-    "MotionStep",
     "chi2_gate_2dof",
     "cov_diag",
     "cov_full",
+    "displacement",
     "innovation",
-    "motion_step",
     "predict",
-    "predict_with_noise",
-    "process_noise",
-    "process_noise_terms",
     "update",
     "wrap_angle",
 ]

@@ -3,13 +3,12 @@
 Theory of operation
 - Inputs (wheel ticks or body twists) make prediction steps on the odometry track (robotd.track). Ticks are exact
   displacements: they are accumulated and become one step at their mean twist at most every `predict_period_s`.
-  A twist is a sample held until the next. A replay's estimator (robotd.estimates.ReplayEstimator) may take a
-  whole log's samples at once: the same steps, made in one numpy pass, revealed as the samples are fed.
+  A twist is a sample held until the next.
 - Fixes leave anchors on the track (robotd.history): the state at any time is the newest anchor before it carried
-  forward in O(1). A fix measured at `t_meas` in the past is fused at that time, from the state there; the anchors
-  after it are made again (a late fix lands exactly where an on-time one would, at a cost that does not depend on
-  how late it is). Between steps the state moves with the twist of the step it falls in, and beyond the newest step
-  with the twist of the ticks not yet integrated (or the twist in force).
+  forward through the steps since. A fix measured at `t_meas` in the past is fused at that time, from the state
+  there; the anchors after it are made again (a late fix lands exactly where an on-time one would). Between steps the
+  state moves with the twist of the step it falls in, and beyond the newest step with the twist of the ticks not yet
+  integrated (or the twist in force).
 - Each fix gets a verdict (robotd.fixgate): the first agreeing fixes seed the position, then fixes are gated by their
   NIS (chi-square, 2 dof); rejected fixes that keep coming for `recovery_min_s` and agree with each other once the
   odometry motion is removed re-seed the position (the robot was carried, or the filter drifted). The IPS noise is
@@ -17,7 +16,9 @@ Theory of operation
 - The heading is checked once the robot has driven `heading_align_m` (robotd.heading): the odometry track is rotated
   onto the fixes (a least-squares rotation); when that rotation disagrees with the filter, the filter takes it. An
   unknown initial heading therefore costs one short drive, not a lost robot.
-- The paper's filter is the same code with those features off (`Estimator.paper_filter`).
+- Where the position and the heading stand (placed or not, tracking or rejecting; heading unknown, aligned,
+  confirmed or suspect) is one state machine, robotd.modes.
+- The paper's filter is the same code configured with those features off (robotd.config.paper_preset).
 """
 
 from __future__ import annotations
@@ -26,25 +27,23 @@ import bisect
 import math
 from dataclasses import dataclass
 from math import isfinite
-from typing import Self
 
 from robotd import ekf, kinematics
 from robotd.config import EkfConfig
-from robotd.fixgate import Diagnostics, FixGate, TrackState, Verdict
+from robotd.fixgate import Diagnostics, FixGate
 from robotd.heading import HeadingAligner, HeadingCheck, RotationFit
-from robotd.history import Anchor, FixRecord, History, Predictor, State, Twist3
-from robotd.track import OdometryTrack, displacement
+from robotd.history import Anchor, FixRecord, History, Predictor, State
+from robotd.modes import Modes, PositionMode, Verdict
+from robotd.track import OdometryTrack, Twist3
 from robotd.wheelsteps import TickKinematics, WheelFeed
 
-# An initial heading standard deviation above this says the heading is unknown (the robot was put down anywhere).
-HEADING_KNOWN_SIGMA_RAD = 0.5
-TRIM_ANCHORS = 64  # a replay trims its anchors when it has this many
 TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
 
 
 @dataclass(frozen=True, slots=True)
 class PoseEstimate:
-    """The estimate at time t: pose, body twist in force, 3x3 covariance row-major, age of the last accepted fix."""
+    """The estimate at time t: pose, body twist in force, 3x3 covariance row-major, the time since the measurement
+    of the newest fix that moved the estimate (fix_age_s), and the position mode."""
 
     t: float
     x: float
@@ -55,7 +54,7 @@ class PoseEstimate:
     wz: float
     cov: tuple[float, float, float, float, float, float, float, float, float]
     fix_age_s: float
-    state: TrackState
+    state: PositionMode
 
 
 class Estimator:
@@ -67,38 +66,30 @@ class Estimator:
         geometry: kinematics.Geometry,
         ips_offset_m: tuple[float, float],
         counts_per_rev: int,
-        *,
-        paper: bool = False,
     ) -> None:
-        self.config = ekf_config
+        c = self.config = ekf_config
         self.geometry = geometry
         self.counts_per_rev = counts_per_rev
-        self.paper = paper
-        self._kinematics = TickKinematics(geometry, counts_per_rev)
-        self._offset = ips_offset_m if (ekf_config.lever_arm and not paper) else (0.0, 0.0)
-        self._latency = ekf_config.latency_compensation and not paper
-        c = ekf_config
-        if paper:  # eq. 9: a 2x2 on (v, w) mapped through G, per prediction step (see ekf.ControlNoise)
-            noise = ekf.ControlNoise(const_v2=c.paper_sigma_v_mps**2, const_w2=c.paper_sigma_w_rad_s**2)
-        else:
-            noise = ekf.ControlNoise(
-                lin2=c.odom_along_sigma_m**2,
-                lat2=c.odom_across_sigma_m**2,
-                slip2=c.slip_heading_sigma_rad**2,
-                turn2=c.turn_heading_sigma_rad**2,
-            )
-        self._noise = noise
-        self._track = OdometryTrack(noise, midpoint=not paper)
-        self._predictor = Predictor(noise, midpoint=not paper)
-        self._predictor.heading_known = paper or c.initial_sigma[2] <= HEADING_KNOWN_SIGMA_RAD
+        self._offset = ips_offset_m if c.lever_arm else (0.0, 0.0)
+        noise = ekf.ControlNoise(
+            lin2=c.odom_along_sigma_m**2,
+            lat2=c.odom_across_sigma_m**2,
+            slip2=c.slip_heading_sigma_rad**2,
+            turn2=c.turn_heading_sigma_rad**2,
+            const_v2=c.step_sigma_v_mps**2,
+            const_w2=c.step_sigma_w_rad_s**2,
+        )
+        self.modes = Modes(heading_known=c.initial_sigma[2] <= c.unknown_heading_sigma_rad)
+        self._track = OdometryTrack(midpoint=c.midpoint_heading)
+        self._predictor = Predictor(noise, self.modes, midpoint=c.midpoint_heading)
         x0, y0, th0 = c.initial_pose
         first = Anchor(-math.inf, x0, y0, ekf.wrap_angle(th0), ekf.cov_diag(*c.initial_sigma), None)
-        self._history = History(self._track, self._predictor, first, c.history_s, keep_past=self._latency)
+        self._history = History(self._track, self._predictor, first, c.history_s, keep_past=c.latency_compensation)
         self._last_accept_t = -math.inf
-        self._wheels = WheelFeed(self._kinematics, c.predict_period_s)
-        # the state at the newest step: (newest anchor, visible steps, state, whether the state is at that step)
-        self._newest: tuple[Anchor, int, State, bool] | None = None
-        self._aligner = HeadingAligner(c.heading_align_m, self._offset, enabled=c.heading_align_m > 0.0 and not paper)
+        self._wheels = WheelFeed(TickKinematics(geometry, counts_per_rev), c.predict_period_s)
+        # the state at the newest step: (newest anchor, that step's list index, the state there), or None
+        self._newest: tuple[Anchor, int, State] | None = None
+        self._aligner = HeadingAligner(c.heading_align_m, self._offset, enabled=c.heading_align_m > 0.0)
         self._heading_check = HeadingCheck()
         self.counters: dict[str, int] = dict.fromkeys(
             (
@@ -118,20 +109,13 @@ class Estimator:
             ),
             0,
         )
-        self._fix_gate = FixGate(c, self.counters, paper=paper)
-
-    @classmethod
-    def paper_filter(cls, ekf_config: EkfConfig, geometry: kinematics.Geometry, counts_per_rev: int) -> Self:
-        """The paper's filter as published: no gating, fixes fused on arrival, no lever arm, R = s_ips^2 I."""
-        return cls(ekf_config, geometry, (0.0, 0.0), counts_per_rev, paper=True)
+        self._fix_gate = FixGate(c, self.counters, self.modes)
 
     # --- inputs -----------------------------------------------------------------------------------
 
     def on_wheels(self, t: float, ticks: tuple[int, int, int, int]) -> None:
         """Cumulative encoder counts (FL FR RL RR) at time t."""
         wheels = self._wheels
-        if wheels.loaded is not None:
-            raise RuntimeError("wheel samples were loaded with load_wheels: feed them with on_wheel_samples")
         if not wheels.accepts(t):
             self.counters["dropped_out_of_order" if math.isfinite(t) else "dropped_non_finite"] += 1
             return
@@ -142,12 +126,10 @@ class Estimator:
 
     def on_twist(self, t: float, vx: float, vy: float, wz: float) -> None:
         """A measured body twist (m/s, rad/s) at time t, held until the next one."""
-        if self._wheels.loaded is not None:
-            raise RuntimeError("wheel samples were loaded with load_wheels: no twist samples can be added")
         if not (math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(wz)):
             self.counters["dropped_non_finite"] += 1
             return
-        if t < self._history.newest_step_t():
+        if self._track.t and t < self._track.t[-1]:
             self.counters["dropped_out_of_order"] += 1
             return
         self.counters["twists"] += 1
@@ -178,23 +160,21 @@ class Estimator:
             track.append(t, step_u, held)
         else:
             track.hold(held)
-        history.visible = len(track)
         if len(track) - TRIM_STEPS > 2 * TRIM_STEPS:
             needed = history.trim(t, self._pending)
             if needed > TRIM_STEPS:
-                track.drop_before(track.first + needed)
-                history.visible = len(track)
+                track.drop_before(needed)
                 self._newest = None  # its step index moved
 
     def _pending(self) -> Twist3:
         """The twist beyond the newest step: that of the samples fed since (their mean), or the one in force."""
-        track, vis = self._track, self._history.visible
-        u = self._wheels.pending(vis)
+        u = self._wheels.pending()
         if u is not None:
             return u
-        if not vis:
+        track = self._track
+        if not track.t:
             return (0.0, 0.0, 0.0)
-        return track.hx[vis - 1], track.hy[vis - 1], track.hw[vis - 1]
+        return track.hx[-1], track.hy[-1], track.hw[-1]
 
     # --- fixes ------------------------------------------------------------------------------------
 
@@ -205,15 +185,16 @@ class Estimator:
         if not (isfinite(t) and isfinite(x) and isfinite(y)):
             counters["dropped_non_finite"] += 1
             return None
-        if not self._latency or not isfinite(t_meas) or t_meas > t:
+        if not self.config.latency_compensation or not isfinite(t_meas) or t_meas > t:
             t_meas = t
-        history = self._history
+        history, track = self._history, self._track
         if history.times[0] == -math.inf:
             self._set_clock(t_meas)
-        vis = history.visible
-        newest_step = self._track.t[vis - 1] if vis else -math.inf
+        newest_step = track.t[-1] if track.t else -math.inf
         gate = self._fix_gate
-        if t_meas < history.times[0] or (self._latency and t_meas < newest_step - self.config.history_s):
+        if t_meas < history.times[0] or (
+            self.config.latency_compensation and t_meas < newest_step - self.config.history_s
+        ):
             counters["fixes_too_old"] += 1
             nan = math.nan
             return Diagnostics(
@@ -228,11 +209,12 @@ class Estimator:
         r = gate.r
         inn = ekf.innovation(px, py, pth, pp, x, y, r, self._offset[0], self._offset[1])
         verdict = gate.judge(t_meas, inn, r)
+        before = self.modes.on_verdict(verdict)
         aligner = self._aligner
-        if aligner.enabled and gate.seeded:
-            if aligner.start_t == math.inf:
-                self._restart_window()  # the first window starts with the first seeded fix
-            aligner.record(x, y, t_meas, self._track.pose_at(t_meas, history.visible))
+        if aligner.enabled and self.modes.placed:
+            if before is PositionMode.INITIALISING:
+                self._restart_window()  # the first window starts with the fix that placed the position
+            aligner.record(x, y, t_meas, track.pose_at(t_meas))
         if verdict is Verdict.ACCEPTED:
             anchor = self._fuse(prior, t_meas, (x, y, r), inn)
         elif verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
@@ -242,9 +224,7 @@ class Estimator:
         history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
-        if len(anchors) > TRIM_ANCHORS and self._wheels.loaded is not None:
-            history.trim(newest_step, self._pending)  # (fed one by one, the steps trim the anchors: _step_to)
-        if aligner.enabled and vis and self._track.dist[vis - 1] >= aligner.next_fit:
+        if aligner.enabled and track.t and track.dist[-1] >= aligner.next_fit:
             self._maybe_realign()
         return Diagnostics(
             t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)
@@ -267,12 +247,10 @@ class Estimator:
     def _fuse(self, prior: State, t: float, z: tuple[float, float, float], inn: ekf.Innovation) -> Anchor:
         """The anchor of fix z = (zx, zy, r) fused at t into the prior."""
         # at rest a fix says nothing about the heading; with the heading unknown the model has no heading to correct
-        if self.paper:
-            freeze = False
-        elif not self._predictor.heading_known:
+        if not self.modes.heading_known:
             freeze = True
         else:
-            u = self._track.twist_at(t, self._history.visible) or self._pending()
+            u = self._track.twist_at(t) or self._pending()
             freeze = math.hypot(u[0], u[1]) < self.config.heading_min_speed_mps
         x, y, th, p = ekf.update(prior[0], prior[1], prior[2], prior[3], inn, z[2], freeze_heading=freeze)
         return Anchor(t, x, y, th, p, FixRecord(z[0], z[1], z[2], fused=True))
@@ -280,9 +258,8 @@ class Estimator:
     def _seed(self, prior: State, t: float, z: tuple[float, float, float], verdict: Verdict) -> Anchor:
         """Move the beacon onto the agreeing fixes (their median innovation), forgetting the position's past."""
         if verdict is Verdict.RECOVERED:
-            self._restart_window()  # carried robots may have been turned too: check the heading again
-            self._heading_check.forget()
-            self._predictor.heading_known = False
+            self._restart_window()  # carried robots may have been turned too (modes: the heading is unknown again)
+            self._heading_check.suspect = None
         dx, dy = self._fix_gate.seed_shift(verdict)
         zx, zy, r = z
         p = (r, 0.0, 0.0, r, 0.0, prior[3][5])
@@ -291,31 +268,30 @@ class Estimator:
     # --- heading alignment --------------------------------------------------------------------------
 
     def _restart_window(self) -> None:
-        t, pose, dist = self._track.newest(self._history.visible, self._history.start)
+        t, pose, dist = self._track.newest(self._history.start)
         self._aligner.restart(t, pose, dist)
 
     def _maybe_realign(self) -> None:
-        """Take the heading of the aligner's rotation fit when the filter's heading disagrees with it."""
-        now_t, now_pose, dist = self._track.newest(self._history.visible, self._history.start)
+        """Take the heading of the aligner's rotation fit when the heading modes say so (robotd.modes)."""
+        now_t, now_pose, dist = self._track.newest(self._history.start)
         # an unknown heading is taken from a whole window: the longer the track, the better its direction
-        known = self._predictor.heading_known
-        fit = self._aligner.check(self._fix_gate.r, now_t, now_pose, dist, whole=not known)
+        fit = self._aligner.check(self._fix_gate.r, now_t, now_pose, dist, whole=not self.modes.heading_known)
         if fit is None:
             return
         _, _, theta, p = self._state_at_newest_step()
-        if self._heading_check.realign(fit, theta, p[5], heading_known=known):
+        evidence = self._heading_check.evidence(fit, theta, p[5], self.modes.heading)
+        if evidence is not None and self.modes.on_evidence(evidence):
             self._realign(fit)
 
     def _realign(self, fit: RotationFit) -> None:
         """Restart the state from the window's fit: its heading, and the position its translation puts it at."""
         ax, ay, ath = fit.window_odo
         sigma = fit.sigma
-        self._predictor.heading_known = True
         self.counters["heading_realigned"] += 1
         c, s = math.cos(fit.rotation), math.sin(fit.rotation)
         x, y = fit.tx + ax * c - ay * s, fit.ty + ax * s + ay * c
         r = self._fix_gate.r
-        when = self._history.newest_step_t()
+        when = self._track.t[-1] if self._track.t else -math.inf
         anchor = Anchor(when, x, y, ekf.wrap_angle(fit.rotation + ath), (r, 0.0, 0.0, r, 0.0, sigma * sigma), None)
         # the states before now were built on the wrong heading: start again from here
         self._history.reset(anchor)
@@ -325,48 +301,43 @@ class Estimator:
     # --- output ---------------------------------------------------------------------------------------
 
     def _state_at_newest_step(self) -> State:
-        """The state at the newest visible step, or at the newest anchor when that is later."""
-        history = self._history
-        anchor, vis = history.newest, history.visible
+        """The state at the newest step, or at the newest anchor when that is later (between two fixes the outputs
+        carry the previous output's state on, step by step)."""
+        history, track = self._history, self._track
+        anchor, newest = history.newest, len(track) - 1
         cached = self._newest
-        if cached is not None and cached[0] is anchor:
-            if cached[1] == vis:
-                return cached[2]
-            if cached[3] and cached[1] < vis <= cached[1] + 2:
-                # the outputs between two fixes: one or two steps on from the last output, taken one by one
-                track, move = self._track, self._predictor.move
-                state = cached[2]
-                for k in range(cached[1], vis):
-                    state = move(state, (track.vx[k], track.vy[k], track.wz[k]), track.t[k] - track.t[k - 1])
-                self._newest = (anchor, vis, state, True)
+        if cached is not None and cached[0] is anchor and cached[1] <= newest:
+            if cached[1] < newest:
+                state = history.carry(cached[2], track.t[cached[1]], cached[1] + 1, newest)
+                self._newest = (anchor, newest, state)
                 return state
-        when = history.newest_step_t()
-        on_step = when > anchor.t
-        state = history.state_at(anchor, when, self._pending) if on_step else anchor.state
-        self._newest = (anchor, vis, state, on_step)
+            return cached[2]
+        if newest < 0 or track.t[newest] <= anchor.t:
+            return anchor.state
+        state = history.state_at(anchor, track.t[newest], self._pending)
+        self._newest = (anchor, newest, state)
         return state
 
     def pose(self, t: float | None = None) -> PoseEstimate:
         """The estimate, extrapolated with the twist in force to time t when t is later than the newest input."""
         when, x, y, th, (vx, vy, wz), p = self._extrapolate(t)
-        return PoseEstimate(
-            when, x, y, th, vx, vy, wz, ekf.cov_full(p), when - self._last_accept_t, self._fix_gate.state
-        )
+        age = when - self._last_accept_t
+        return PoseEstimate(when, x, y, th, vx, vy, wz, ekf.cov_full(p), age, self.modes.position)
 
     def position(self, t: float) -> tuple[float, float, float, ekf.Cov] | None:
-        """x, y, theta and P (upper triangle) of pose(t), or None before a fix placed the filter (state INITIALISING).
+        """x, y, theta and P (upper triangle) of pose(t), or None before a fix placed the position.
 
         The replay's per-output call: the same numbers as pose(t) without building a PoseEstimate.
         """
-        if self._fix_gate.state is TrackState.INITIALISING:
+        if not self.modes.placed:
             return None
         _, x, y, th, _, p = self._extrapolate(t)
         return x, y, th, p
 
     def _extrapolate(self, t: float | None) -> tuple[float, float, float, float, Twist3, ekf.Cov]:
         """Time, pose, twist in force and P of the newest state carried forward to t (mean only) when t is later."""
-        history = self._history
-        when = max(history.newest_step_t(), history.newest.t)
+        newest_step = self._track.t[-1] if self._track.t else -math.inf
+        when = max(newest_step, self._history.newest.t)
         x, y, th, p = self._state_at_newest_step()
         u = self._pending()
         if t is None:
@@ -374,11 +345,11 @@ class Estimator:
         if t > when and math.isfinite(when):
             vx, vy, wz = u
             dt = t - when
-            dx, dy, _, _ = displacement(vx, vy, wz, dt, th, midpoint=True, lib=math)
+            dx, dy, _, _ = ekf.displacement(vx, vy, wz, dt, th, midpoint=True)
             x, y = x + dx, y + dy
             th = ekf.wrap_angle(th + wz * dt)
             when = t
         return when, x, y, th, u, p
 
 
-__all__ = ["Diagnostics", "Estimator", "PoseEstimate", "TrackState", "Verdict"]
+__all__ = ["Diagnostics", "Estimator", "PoseEstimate", "PositionMode", "Verdict"]

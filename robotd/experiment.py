@@ -25,9 +25,8 @@ import numpy as np
 from robotd import librsf, plots
 from robotd.config import EkfConfig, RobotdConfig
 from robotd.logfile import Event, LogWriter, Meta, SensorLog, Truth, parse_lines
-from robotd.metrics import ErrorStats, TruthTrack
+from robotd.metrics import ErrorStats, Trajectory, fixes_trajectory
 from robotd.replay import METHODS, ReplayResult, replay
-from robotd.replay import Track as ReplayTrack
 
 # Every figure of ErrorStats that is summarised over seeds (heading only for methods that have one).
 METRICS = ("rmse_m", "max_m", "final_m", "mean_m", "median_m", "heading_rmse_deg")
@@ -63,8 +62,8 @@ class Spread:
 class FigureData:
     """What Fig. 6 and Fig. 7 draw for one run: truth and each method's track (fixes as a track without heading)."""
 
-    truth: plots.Track
-    methods: dict[str, plots.Track]
+    truth: Trajectory
+    methods: dict[str, Trajectory]
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,28 +112,15 @@ def through_log_format(meta: Meta, events: Sequence[Event]) -> SensorLog:
     return parse_lines(buffer.getvalue().splitlines())
 
 
-def _plot_track(track: ReplayTrack) -> plots.Track:
-    return plots.Track(np.array(track.t), np.array(track.x), np.array(track.y), np.array(track.theta))
-
-
 def figure_data(log: SensorLog, result: ReplayResult) -> FigureData:
-    """The tracks of a replayed log for the figures; fixes moved from the beacon to the robot's centre, as scored."""
-    samples = [(e.t, e.x, e.y, e.theta) for e in log.events if isinstance(e, Truth)]
-    reference = TruthTrack.from_samples(samples)
-    truth = plots.Track(reference.t, reference.x, reference.y, reference.theta)
-    t = np.array([f[0] for f in result.fixes], dtype=np.float64)
-    fx = np.array([f[1] for f in result.fixes], dtype=np.float64)
-    fy = np.array([f[2] for f in result.fixes], dtype=np.float64)
-    dx, dy = result.ips_offset
-    if (dx, dy) != (0.0, 0.0) and reference.has_heading and len(t):
-        _, _, heading, _ = reference.at(t)
-        fx = fx - (dx * np.cos(heading) - dy * np.sin(heading))
-        fy = fy - (dx * np.sin(heading) + dy * np.cos(heading))
+    """The trajectories of a replayed log for the figures; fixes moved from the beacon to the robot's centre, as
+    scored."""
+    truth = Trajectory.from_samples([(e.t, e.x, e.y, e.theta) for e in log.events if isinstance(e, Truth)])
     methods = {
-        "odometry": _plot_track(result.odometry),
-        "ips": plots.Track(t, fx, fy, np.full(len(t), np.nan)),
-        "paper_ekf": _plot_track(result.paper),
-        "ekf": _plot_track(result.ekf),
+        "odometry": result.odometry,
+        "ips": fixes_trajectory(result.fixes, result.ips_offset, truth),
+        "paper_ekf": result.paper,
+        "ekf": result.ekf,
     }
     return FigureData(truth, methods)
 
@@ -147,9 +133,7 @@ def _worst_at(data: FigureData) -> float | None:
     inside = (ekf.t >= data.truth.t[0]) & (ekf.t <= data.truth.t[-1])
     if not np.any(inside):
         return None
-    error = plots.position_error(
-        plots.Track(ekf.t[inside], ekf.x[inside], ekf.y[inside], ekf.theta[inside]), data.truth
-    )
+    error = plots.position_error(Trajectory(ekf.t[inside], ekf.x[inside], ekf.y[inside], ekf.theta[inside]), data.truth)
     return float(ekf.t[inside][int(np.argmax(error))] - data.truth.t[0])
 
 

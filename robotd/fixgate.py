@@ -1,7 +1,7 @@
 """The verdict on each IPS fix: seeding, Mahalanobis gating, lock-out recovery, and the IPS noise estimate. Pure.
 
-- Until the position is seeded, fixes are held as candidates: SEED_FIXES that agree with each other seed it (a first
-  fix may be an outlier). The paper's filter fuses its first fix like any other.
+- Until the position is placed, fixes are held as candidates: `seed_fixes` that agree with each other seed it (a
+  first fix may be an outlier). With none configured (the paper's filter), the first fix is judged like any other.
 - Then a fix is accepted when its NIS is within the chi-square gate (2 dof). Rejected fixes are remembered: when
   they keep coming for `recovery_min_s` and agree with each other once the odometry motion is removed (as
   innovations), the position is re-seeded on them (the robot was carried, or the filter drifted); one consistent
@@ -13,7 +13,6 @@
 from __future__ import annotations
 
 import bisect
-import enum
 import math
 from collections import deque
 from typing import NamedTuple
@@ -21,30 +20,9 @@ from typing import NamedTuple
 from robotd import ekf
 from robotd.config import EkfConfig
 from robotd.heading import LN4
-
-SEED_FIXES = 3
+from robotd.modes import Modes, Verdict
 
 Innovation3 = tuple[float, float, float]  # t_meas, innovation x, y
-
-
-class TrackState(enum.Enum):
-    """Where the estimator stands with respect to the IPS."""
-
-    INITIALISING = "initialising"  # no fix seeded the position yet
-    TRACKING = "tracking"  # the latest fix was accepted
-    REJECTING = "rejecting"  # fixes arrive but are gated out; recovery watches them
-
-
-class Verdict(enum.Enum):
-    """What happened to one fix."""
-
-    ACCEPTED = "accepted"
-    SEEDED = "seeded"  # the first agreeing fixes set the position
-    SEEDING = "seeding"  # held until SEED_FIXES fixes agree (a first fix may be an outlier)
-    RECOVERED = "recovered"  # rejected fixes agreed long enough: the position was re-seeded
-    GATED = "gated"  # rejected: NIS beyond the gate
-    TOO_OLD = "too_old"  # measured before the history's start
-    NON_FINITE = "non_finite"
 
 
 class Diagnostics(NamedTuple):
@@ -69,53 +47,40 @@ class Diagnostics(NamedTuple):
 
 
 class FixGate:
-    """Judges fixes by their innovation; keeps the track state, the counters it owns and the IPS noise estimate."""
+    """Judges fixes by their innovation; keeps the counters it owns and the IPS noise estimate."""
 
-    def __init__(self, config: EkfConfig, counters: dict[str, int], *, paper: bool) -> None:
+    def __init__(self, config: EkfConfig, counters: dict[str, int], modes: Modes) -> None:
         self.config = config
         self.counters = counters
-        self.paper = paper
-        self.gating = config.gating and not paper
-        self.adaptive = config.adaptive_ips_noise and not paper
+        self.modes = modes
         self.gate = ekf.chi2_gate_2dof(config.gate_probability)
         self.r_floor = config.ips_sigma_m**2
         self.r = self.r_floor  # the IPS noise variance in use
-        self.seeded = False
-        self.state = TrackState.INITIALISING
         self.rejected: deque[Innovation3] = deque(maxlen=256)
-        self.candidates: deque[Innovation3] = deque(maxlen=SEED_FIXES)
+        self.candidates: deque[Innovation3] = deque(maxlen=config.seed_fixes)
         self.innovations: deque[float] = deque(maxlen=31)  # |nu|^2 - (trace(S) - 2 r), for the noise estimate
         self._ordered: list[float] = []  # the same, sorted
 
     def judge(self, t_meas: float, inn: ekf.Innovation, r: float) -> Verdict:
         """Seed, accept, gate or recover: the fix's verdict (and the counters and noise estimate that follow)."""
-        if not self.seeded:
-            if self.paper:  # as published: the first fix is fused like any other
-                self.seeded = True
-                self.state = TrackState.TRACKING
-                self.counters["fixes_accepted"] += 1
-                return Verdict.ACCEPTED
+        config, counters = self.config, self.counters
+        if not self.modes.placed and config.seed_fixes:
             self.candidates.append((t_meas, inn.nu_x, inn.nu_y))
-            if len(self.candidates) < SEED_FIXES or not self._agree(list(self.candidates)):
+            if len(self.candidates) < config.seed_fixes or not self._agree(list(self.candidates)):
                 return Verdict.SEEDING
-            self.seeded = True
-            self.state = TrackState.TRACKING
-            self.counters["fixes_seeded"] += 1
+            counters["fixes_seeded"] += 1
             return Verdict.SEEDED
-        if self.adaptive:
+        if config.adaptive_ips_noise:
             self._learn_noise(inn, r)
-        if not self.gating or inn.nis <= self.gate:
+        if not config.gating or inn.nis <= self.gate:
             self.rejected.clear()
-            self.state = TrackState.TRACKING
-            self.counters["fixes_accepted"] += 1
+            counters["fixes_accepted"] += 1
             return Verdict.ACCEPTED
-        self.state = TrackState.REJECTING
         self.rejected.append((t_meas, inn.nu_x, inn.nu_y))
         if self._recoverable():
-            self.counters["recoveries"] += 1
-            self.state = TrackState.TRACKING
+            counters["recoveries"] += 1
             return Verdict.RECOVERED
-        self.counters["fixes_rejected"] += 1
+        counters["fixes_rejected"] += 1
         return Verdict.GATED
 
     def seed_shift(self, verdict: Verdict) -> tuple[float, float]:
@@ -168,4 +133,4 @@ class FixGate:
             self.r = min(max(estimate, self.r_floor), self.config.ips_sigma_max_m**2)
 
 
-__all__ = ["SEED_FIXES", "Diagnostics", "FixGate", "TrackState", "Verdict"]
+__all__ = ["Diagnostics", "FixGate", "Verdict"]

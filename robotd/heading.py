@@ -12,6 +12,7 @@ import math
 from typing import NamedTuple
 
 from robotd.ekf import wrap_angle
+from robotd.modes import HeadingEvidence, HeadingMode
 
 LN4 = 2.0 * math.log(2.0)  # median of a chi-square with 2 dof: |nu|^2 / sigma^2 has this median
 MAX_POINTS = 400  # a robot standing still must not grow a window forever
@@ -50,7 +51,9 @@ class HeadingAligner:
         self.zys: list[float] = []
         self.oxs: list[float] = []
         self.oys: list[float] = []
-        self.start_t = math.inf  # the window's start: time, odometry pose and distance travelled then
+        # the window's start: time, odometry pose and distance travelled then (the estimator starts the first window
+        # when a fix places the position)
+        self.start_t = 0.0
         self.start_pose = (0.0, 0.0, 0.0)
         self.start_dist = 0.0
         self.last_fit_dist = -math.inf  # travel (in the window) at the last fit: fits are spaced FIT_SPACING apart
@@ -99,7 +102,7 @@ class HeadingAligner:
         that reached its full length is closed (a new one starts), so that a heading gone wrong at any time (unknown
         at start, a robot turned while carried, slip the model did not expect) is caught within one window.
         """
-        if not self.enabled or math.isinf(self.start_t):
+        if not self.enabled:
             return None
         travelled = dist - self.start_dist
         full = travelled >= self.window_m
@@ -109,7 +112,7 @@ class HeadingAligner:
             return None
         self.last_fit_dist = travelled
         self.next_fit = self.start_dist + min(travelled + FIT_SPACING * self.window_m, self.window_m)
-        fit = fit_rotation(self.oxs, self.oys, self.zxs, self.zys, 4.0 * math.sqrt(r))
+        fit = trimmed_rotation_fit(self.oxs, self.oys, self.zxs, self.zys, 4.0 * math.sqrt(r))
         odo, window = self.in_window(now), self.window
         if full:
             self.restart(now_t, now, dist)
@@ -120,77 +123,81 @@ class HeadingAligner:
 
 
 class HeadingCheck:
-    """Whether a window's rotation fit replaces the filter's heading: the first trustworthy fit when the heading is
-    unknown; after that, only a large disagreement that two successive windows agree on.
-
-    Once a fit has agreed with the filter, a window that disagrees is a suspect (an echo or a slip can bend one
-    window), confirmed by the next window if that one disagrees the same way.
-    """
+    """What a window's rotation fit says about the filter's heading, as the evidence robotd.modes takes; keeps the
+    disagreeing window that a SUSPECT heading waits on."""
 
     def __init__(self) -> None:
-        self.confirmed = False  # a window's fit agreed with the filter since start-up (or since a recovery)
         self.suspect: tuple[int, float, float] | None = None  # (window, signed disagreement, its sigma)
 
-    def forget(self) -> None:
-        """The heading is in doubt again (the robot was carried): the next disagreeing window is taken at once."""
-        self.confirmed = False
-        self.suspect = None
-
-    def realign(self, fit: RotationFit, filter_theta: float, filter_var: float, *, heading_known: bool) -> bool:
-        """Whether to take the fit's heading; filter_theta and filter_var are the filter's heading and its variance
-        now (at the fit's window_odo)."""
+    def evidence(
+        self, fit: RotationFit, filter_theta: float, filter_var: float, heading: HeadingMode
+    ) -> HeadingEvidence | None:
+        """The fit's evidence (None: it decides nothing), given the heading mode; filter_theta and filter_var are the
+        filter's heading and its variance now (at the fit's window_odo)."""
         # the filter's heading at the window's start is its current heading less the odometry turn since
         filter_start = wrap_angle(filter_theta - fit.window_odo[2])
         signed = wrap_angle(fit.rotation - filter_start)
         sigma = fit.sigma
         if sigma > MAX_FIT_SIGMA_RAD:
-            return False
-        if not heading_known:
+            return None
+        if heading is HeadingMode.UNKNOWN:
             self.suspect = None
-            return True  # the first trustworthy window gives the heading that was unknown
+            return HeadingEvidence.WHOLE_WINDOW  # the first trustworthy window gives the heading that was unknown
         spread = math.sqrt(sigma * sigma + filter_var)
         if abs(signed) <= max(4.0 * spread, MIN_REALIGN_RAD):
             if abs(signed) <= 3.0 * spread:
-                self.confirmed = True
                 self.suspect = None
-            return False
-        if self.confirmed:
-            suspect, window = self.suspect, fit.window
-            if suspect is None or suspect[0] == window:
-                if suspect is None:
-                    self.suspect = (window, signed, sigma)
-                return False
-            if abs(wrap_angle(signed - suspect[1])) > 3.0 * math.hypot(sigma, suspect[2]):
-                self.suspect = (window, signed, sigma)  # two windows that disagree with each other: neither is proof
-                return False
+                return HeadingEvidence.AGREES
+            return None
+        if heading is HeadingMode.ALIGNED:
+            self.suspect = None
+            return HeadingEvidence.DISAGREES
+        suspect, window = self.suspect, fit.window
+        if suspect is None:  # (CONFIRMED) one window disagrees: a suspect
+            self.suspect = (window, signed, sigma)
+            return HeadingEvidence.DISAGREES
+        if suspect[0] == window:  # the suspect window itself, fitted again
+            return None
+        if abs(wrap_angle(signed - suspect[1])) > 3.0 * math.hypot(sigma, suspect[2]):
+            self.suspect = (window, signed, sigma)  # two windows that disagree with each other: neither is proof
+            return HeadingEvidence.DISAGREES
         self.suspect = None
-        return True
+        return HeadingEvidence.DISAGREES_AGAIN
 
 
-def fit_rotation(
+def fit_rotation(oxs: list[float], oys: list[float], zxs: list[float], zys: list[float]) -> tuple[float, float, float]:
+    """The rotation and translation (rotation, tx, ty) taking points (oxs, oys) onto points (zxs, zys), least
+    squares (at least one point)."""
+    n = len(oxs)
+    mzx, mzy, mox, moy = sum(zxs) / n, sum(zys) / n, sum(oxs) / n, sum(oys) / n
+    dot = cross = 0.0
+    for pox, poy, pzx, pzy in zip(oxs, oys, zxs, zys, strict=True):
+        ox, oy, zx, zy = pox - mox, poy - moy, pzx - mzx, pzy - mzy
+        dot += ox * zx + oy * zy
+        cross += ox * zy - oy * zx
+    rotation = math.atan2(cross, dot)
+    c, s = math.cos(rotation), math.sin(rotation)
+    return rotation, mzx - (mox * c - moy * s), mzy - (mox * s + moy * c)
+
+
+def trimmed_rotation_fit(
     oxs: list[float], oys: list[float], zxs: list[float], zys: list[float], tolerance: float
 ) -> tuple[float, float, float, float] | None:
-    """The rotation (and translation) taking the odometry track (oxs, oys) onto the fixes (zxs, zys), least squares
-    with outliers trimmed.
+    """fit_rotation of the odometry track (oxs, oys) onto the fixes (zxs, zys) with outliers trimmed, and how certain
+    its rotation is.
 
     Returns (rotation, its standard deviation, tx, ty) or None when the track is too short or too inconsistent.
     """
     count = len(oxs)
-    cos, sin, hypot = math.cos, math.sin, math.hypot
+    hypot = math.hypot
+    fitted_x, fitted_y = oxs, oys
     for _ in range(3):
         n = len(oxs)
         if n < 5:
             return None
-        mzx, mzy, mox, moy = sum(zxs) / n, sum(zys) / n, sum(oxs) / n, sum(oys) / n
-        dot = cross = spread = 0.0
-        for pox, poy, pzx, pzy in zip(oxs, oys, zxs, zys, strict=True):
-            ox, oy, zx, zy = pox - mox, poy - moy, pzx - mzx, pzy - mzy
-            dot += ox * zx + oy * zy
-            cross += ox * zy - oy * zx
-            spread += ox * ox + oy * oy
-        rotation = math.atan2(cross, dot)
-        c, s = cos(rotation), sin(rotation)
-        tx, ty = mzx - (mox * c - moy * s), mzy - (mox * s + moy * c)
+        rotation, tx, ty = fit_rotation(oxs, oys, zxs, zys)
+        fitted_x, fitted_y = oxs, oys
+        c, s = math.cos(rotation), math.sin(rotation)
         residuals = [
             hypot(pzx - (tx + pox * c - poy * s), pzy - (ty + pox * s + poy * c))
             for pox, poy, pzx, pzy in zip(oxs, oys, zxs, zys, strict=True)
@@ -204,6 +211,11 @@ def fit_rotation(
         zxs, zys = [zxs[i] for i in keep], [zys[i] for i in keep]
     if len(oxs) < 0.7 * count:  # too many points off the fit: no trustworthy rotation in this window
         return None
+    n = len(fitted_x)
+    mox, moy = sum(fitted_x) / n, sum(fitted_y) / n
+    spread = 0.0  # of the fitted odometry points about their mean
+    for pox, poy in zip(fitted_x, fitted_y, strict=True):
+        spread += (pox - mox) * (pox - mox) + (poy - moy) * (poy - moy)
     if spread <= 0.0:
         return None
     noise = max(median / math.sqrt(LN4), 1e-3)
@@ -213,4 +225,4 @@ def fit_rotation(
     return rotation, sigma, tx, ty
 
 
-__all__ = ["LN4", "HeadingAligner", "HeadingCheck", "RotationFit", "fit_rotation"]
+__all__ = ["LN4", "HeadingAligner", "HeadingCheck", "RotationFit", "fit_rotation", "trimmed_rotation_fit"]

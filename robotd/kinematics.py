@@ -14,13 +14,7 @@ forward() is the least-squares body twist of any four wheel speeds.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-
-import numpy as np
-import numpy.typing as npt
-
-FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True, slots=True)
@@ -30,20 +24,6 @@ class Geometry:
     wheel_radius_m: float = 0.046875
     lx_m: float = 0.135
     ly_m: float = 0.125
-
-    @property
-    def forward_matrix(self) -> FloatArray:
-        """J in (vx, vy, wz) = J @ (w1, w2, w3, w4): the paper's eq. 1."""
-        r, k = self.wheel_radius_m, self.lx_m + self.ly_m
-        return (r / 4.0) * np.array(
-            [[1.0, 1.0, 1.0, 1.0], [-1.0, 1.0, 1.0, -1.0], [-1.0 / k, 1.0 / k, -1.0 / k, 1.0 / k]]
-        )
-
-    @property
-    def inverse_matrix(self) -> FloatArray:
-        """J+ in (w1, w2, w3, w4) = J+ @ (vx, vy, wz): the exact inverse of eq. 1."""
-        r, k = self.wheel_radius_m, self.lx_m + self.ly_m
-        return (1.0 / r) * np.array([[1.0, -1.0, -k], [1.0, 1.0, k], [1.0, 1.0, -k], [1.0, -1.0, k]])
 
 
 @dataclass(frozen=True, slots=True)
@@ -56,7 +36,8 @@ class Twist:
 
 
 def forward(geometry: Geometry, wheel_speeds: tuple[float, float, float, float]) -> Twist:
-    """Body twist from wheel angular speeds (rad/s, wheel order FL FR RL RR): paper eq. 1."""
+    """Body twist from wheel angular speeds (rad/s, wheel order FL FR RL RR): paper eq. 1. (Wheel turns in rad give
+    the body's displacement over the same interval.)"""
     w1, w2, w3, w4 = wheel_speeds
     r, k = geometry.wheel_radius_m, geometry.lx_m + geometry.ly_m
     return Twist(
@@ -74,19 +55,4 @@ def inverse(geometry: Geometry, twist: Twist) -> tuple[float, float, float, floa
         (twist.vx + twist.vy + k * twist.wz) / r,
         (twist.vx + twist.vy - k * twist.wz) / r,
         (twist.vx - twist.vy + k * twist.wz) / r,
-    )
-
-
-def counts_to_radians(counts: float, counts_per_rev: int) -> float:
-    """Wheel angle turned for a number of decoded encoder counts."""
-    return counts * (2.0 * math.pi / counts_per_rev)
-
-
-def dead_reckon(x: float, y: float, theta: float, twist: Twist, dt: float) -> tuple[float, float, float]:
-    """One step of dead reckoning (paper eq. 2): the body twist rotated into the world frame over dt."""
-    c, s = math.cos(theta), math.sin(theta)
-    return (
-        x + (twist.vx * c - twist.vy * s) * dt,
-        y + (twist.vx * s + twist.vy * c) * dt,
-        theta + twist.wz * dt,
     )

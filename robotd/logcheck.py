@@ -23,17 +23,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from robotd.logfile import (
-    OTHER_KIND,
-    TRUTH_KIND,
-    WHEELS_KIND,
-    Columns,
-    Command,
-    Event,
-    IpsFix,
-    SensorLog,
-    TwistSample,
-)
+from robotd.logfile import Command, Event, IpsFix, SensorLog, Truth, TwistSample, Wheels
 
 MAX_TIME_S = 2.0**53 * 1e-6  # 9.0e9 s (285 years): beyond, a double no longer holds a microsecond
 MAX_WHEEL_RAD_S = 1e4  # ~1600 turns a second: a hundred times any robot's wheel, far below a corrupted count
@@ -67,36 +57,32 @@ class LogRefusedError(ValueError):
 def check(log: SensorLog, counts_per_rev: int) -> tuple[SensorLog, list[str]]:
     """The log without its bad events, and one problem ("line N: ...") per event skipped; LogRefusedError when its times
     go backwards or no event is left."""
-    columns = log.columns()
-    count = len(columns)
-    lines = log.lines if log.lines is not None and len(log.lines) == count else None
+    events = log.events
+    count = len(events)
+    lines = log.lines if len(log.lines) == count else None
     where = _Where(lines)
-    kinds = columns.kinds
-    times = np.empty(count, dtype=np.float64)
-    times[kinds == WHEELS_KIND] = columns.wheels_t
-    times[kinds == TRUTH_KIND] = columns.truth[:, 0]
-    times[kinds == OTHER_KIND] = [event.t for event in columns.others]
+    times = np.fromiter((event.t for event in events), dtype=np.float64, count=count)
     bad: dict[int, str] = {}
-    _check_values(columns, times, bad)
+    _check_values(events, times, bad)
     keep = np.ones(count, dtype=np.bool_)
     keep[list(bad)] = False
     backwards = _backwards(times, keep, where)
     if backwards is not None:
         raise LogRefusedError(backwards, _problems(bad, where))
-    _check_wheels(columns, times, keep, counts_per_rev, bad)
+    _check_wheels(events, times, keep, counts_per_rev, bad)
     keep[list(bad)] = False
     problems = _problems(bad, where)
     if not keep.any():
         raise LogRefusedError("no events", problems)
     if not bad:
         return log, problems
+    kept = keep.tolist()
     checked = SensorLog(
         log.meta,
-        None,
+        [event for event, ok in zip(events, kept, strict=True) if ok],
         [*log.problems, *problems],
         log.unknown_types,
-        columns=_kept(columns, keep),
-        lines=lines[keep] if lines is not None else None,
+        [line for line, ok in zip(lines, kept, strict=True) if ok] if lines is not None else [],
     )
     return checked, problems
 
@@ -108,37 +94,34 @@ def _problems(bad: dict[int, str], where: _Where) -> list[str]:
 class _Where:
     """Names an event by its line in the file (or by its rank, for a log that was not read from one)."""
 
-    def __init__(self, lines: npt.NDArray[np.int64] | None) -> None:
+    def __init__(self, lines: list[int] | None) -> None:
         self.lines = lines
 
     def __call__(self, index: int) -> str:
-        return f"line {int(self.lines[index])}" if self.lines is not None else f"event {index + 1}"
+        return f"line {self.lines[index]}" if self.lines is not None else f"event {index + 1}"
 
 
-def _check_values(columns: Columns, times: npt.NDArray[np.float64], bad: dict[int, str]) -> None:
+def _check_values(events: list[Event], times: npt.NDArray[np.float64], bad: dict[int, str]) -> None:
     """Numbers that are not finite or beyond LIMITS, times beyond MAX_TIME_S."""
-    kinds = columns.kinds
     for index in np.flatnonzero(~(np.abs(times) <= MAX_TIME_S)).tolist():  # (NaN compares False)
         bad[index] = _out_of_bounds("t", float(times[index]))
-    truth_rows = np.flatnonzero(kinds == TRUTH_KIND)
-    truth = columns.truth
-    # (a truth without heading has theta NaN: the format's "none", not a fault)
-    unusable = ~(np.abs(truth[:, 1:3]) <= LIMITS["x"]).all(axis=1) | (np.abs(truth[:, 3]) > LIMITS["theta"])
-    for row in np.flatnonzero(unusable).tolist():
-        index = int(truth_rows[row])
-        if index not in bad:
-            named = dict(zip(("x", "y", "theta"), truth[row, 1:].tolist(), strict=True))
-            bad[index] = next(_out_of_bounds(k, v) for k, v in named.items() if not abs(v) <= LIMITS[k])
-    other_rows = np.flatnonzero(kinds == OTHER_KIND).tolist()
-    for index, event in zip(other_rows, columns.others, strict=True):
+    for index, event in enumerate(events):
         if index not in bad and (problem := _event_problem(event)) is not None:
             bad[index] = problem
 
 
 def _event_problem(event: Event) -> str | None:
     """What is wrong with a fix, twist or command's numbers (None when nothing)."""
+    named: dict[str, float]
     if type(event) is IpsFix:
         named = {"x": event.x, "y": event.y, "z": event.z, "t_meas": event.t_meas}
+    elif type(event) is Truth:
+        # (a truth without heading has theta NaN: the format's "none", not a fault)
+        named = (
+            {"x": event.x, "y": event.y}
+            if math.isnan(event.theta)
+            else {"x": event.x, "y": event.y, "theta": event.theta}
+        )
     elif type(event) is TwistSample or type(event) is Command:
         named = {"vx": event.vx, "vy": event.vy, "wz": event.wz}
     else:
@@ -168,18 +151,17 @@ def _backwards(times: npt.NDArray[np.float64], keep: npt.NDArray[np.bool_], wher
 
 
 def _check_wheels(
-    columns: Columns,
+    events: list[Event],
     times: npt.NDArray[np.float64],
     keep: npt.NDArray[np.bool_],
     counts_per_rev: int,
     bad: dict[int, str],
 ) -> None:
     """Wheel samples whose counts jump, from the previous good sample, faster than MAX_WHEEL_RAD_S."""
-    rows = np.flatnonzero(columns.kinds == WHEELS_KIND)
-    good = keep[rows]
-    rows, ticks = rows[good], columns.wheels_ticks[good].astype(np.float64)  # (floats: no int64 overflow)
+    rows = np.array([i for i, event in enumerate(events) if type(event) is Wheels and keep[i]], dtype=np.int64)
     if len(rows) < 2:
         return
+    ticks = np.array([events[i].ticks for i in rows.tolist()], dtype=np.float64)
     per_s = MAX_WHEEL_RAD_S / (2.0 * math.pi) * counts_per_rev
     t = times[rows]
     steps = np.abs(np.diff(ticks, axis=0)).max(axis=1)
@@ -205,19 +187,6 @@ def _jump(moved: npt.NDArray[np.float64], dt: float) -> str:
     return (
         f"{WHEEL_NAMES[wheel]} counts jump by {moved[wheel]:.3g} in {dt:.3g} s: faster than {MAX_WHEEL_RAD_S:.0e} "
         "rad/s, which no wheel turns"
-    )
-
-
-def _kept(columns: Columns, keep: npt.NDArray[np.bool_]) -> Columns:
-    """The columns of the events where `keep` is True."""
-    kinds = columns.kinds
-    wheels, truth, others = (keep[kinds == kind] for kind in (WHEELS_KIND, TRUTH_KIND, OTHER_KIND))
-    return Columns(
-        kinds[keep],
-        columns.wheels_t[wheels],
-        columns.wheels_ticks[wheels],
-        columns.truth[truth],
-        [event for event, kept in zip(columns.others, others.tolist(), strict=True) if kept],
     )
 
 

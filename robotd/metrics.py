@@ -1,4 +1,4 @@
-"""Position and heading error of estimates against ground truth (the metrics.json of design.md).
+"""Trajectories, and the position and heading error of estimates against ground truth (the metrics.json of design.md).
 
 Truth is of the robot's centre, sampled at its own times and interpolated linearly (heading on the circle) at each
 estimate's time; estimates outside the truth's time span are not scored. Truth without heading (NaN) scores
@@ -14,48 +14,46 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from robotd.ekf import wrap_angle
+
 FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True, slots=True)
-class TruthTrack:
-    """Ground truth samples, sorted by time."""
+class Trajectory:
+    """Planar poses over time: t (s), x, y (m), theta (rad; NaN where a method has no heading, as raw fixes)."""
 
     t: FloatArray
     x: FloatArray
     y: FloatArray
-    theta: FloatArray  # unwrapped; NaN where unknown
+    theta: FloatArray
 
     @classmethod
-    def from_samples(cls, samples: Sequence[tuple[float, float, float, float]]) -> TruthTrack:
-        """From (t, x, y, theta) samples in any order (theta may be NaN)."""
+    def of(cls, t: Sequence[float], x: Sequence[float], y: Sequence[float], theta: Sequence[float]) -> Trajectory:
+        """From four sequences of the same length."""
+        return cls(*(np.asarray(column, dtype=np.float64) for column in (t, x, y, theta)))
+
+    @classmethod
+    def from_samples(cls, samples: Sequence[tuple[float, float, float, float]]) -> Trajectory:
+        """From (t, x, y, theta) samples in any order (truth: theta may be NaN)."""
         arr = np.array(sorted(samples), dtype=np.float64).reshape(-1, 4)
-        theta = arr[:, 3]
-        if np.all(np.isfinite(theta)):
-            theta = np.unwrap(theta)
-        return cls(arr[:, 0], arr[:, 1], arr[:, 2], theta)
+        return cls(arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3])
 
-    @classmethod
-    def from_array(cls, samples: FloatArray) -> TruthTrack:
-        """From an n x 4 array of (t, x, y, theta) rows in any order: the same track as from_samples."""
-        arr = np.asarray(samples, dtype=np.float64).reshape(-1, 4)
-        arr = arr[np.lexsort((arr[:, 3], arr[:, 2], arr[:, 1], arr[:, 0]))]
-        theta = arr[:, 3]
-        if np.all(np.isfinite(theta)):
-            theta = np.unwrap(theta)
-        return cls(arr[:, 0], arr[:, 1], arr[:, 2], theta)
+    def __len__(self) -> int:
+        return len(self.t)
 
     @property
     def has_heading(self) -> bool:
-        """Whether every sample has a heading."""
+        """Whether every pose has a heading."""
         return bool(len(self.theta) > 0 and np.all(np.isfinite(self.theta)))
 
     def at(self, t: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, npt.NDArray[np.bool_]]:
-        """Truth interpolated at times t: x, y, theta (NaN without heading), and which t lie inside the span."""
+        """The poses interpolated at times t (sorted by time), heading on the circle (NaN without heading), and which
+        t lie inside the time span."""
         inside = (t >= self.t[0]) & (t <= self.t[-1]) if len(self.t) else np.zeros(len(t), dtype=bool)
         x = np.interp(t, self.t, self.x)
         y = np.interp(t, self.t, self.y)
-        theta = np.interp(t, self.t, self.theta) if self.has_heading else np.full(len(t), np.nan)
+        theta = np.interp(t, self.t, np.unwrap(self.theta)) if self.has_heading else np.full(len(t), np.nan)
         return x, y, theta, inside
 
 
@@ -86,27 +84,20 @@ class ErrorStats:
         return out
 
 
-def score(
-    truth: TruthTrack,
-    t: Sequence[float],
-    x: Sequence[float],
-    y: Sequence[float],
-    theta: Sequence[float] | None = None,
-) -> ErrorStats | None:
-    """Errors of estimates (x, y[, theta]) at times t against truth; None when none lies within the truth's span."""
-    ta = np.asarray(t, dtype=np.float64)
-    if len(ta) == 0 or len(truth.t) == 0:
+def score(truth: Trajectory, estimates: Trajectory) -> ErrorStats | None:
+    """Errors of estimates against truth (heading too when both have one); None when none lies within the truth's
+    span."""
+    if len(estimates) == 0 or len(truth) == 0:
         return None
-    tx, ty, tth, inside = truth.at(ta)
+    tx, ty, tth, inside = truth.at(estimates.t)
     if not np.any(inside):
         return None
-    ex = np.asarray(x, dtype=np.float64)[inside] - tx[inside]
-    ey = np.asarray(y, dtype=np.float64)[inside] - ty[inside]
+    ex = estimates.x[inside] - tx[inside]
+    ey = estimates.y[inside] - ty[inside]
     err = np.hypot(ex, ey)
     heading: float | None = None
-    if theta is not None and truth.has_heading:
-        dth = np.asarray(theta, dtype=np.float64)[inside] - tth[inside]
-        dth = (dth + math.pi) % (2.0 * math.pi) - math.pi
+    if estimates.has_heading and truth.has_heading:
+        dth = wrap_angle(estimates.theta[inside] - tth[inside])
         heading = math.degrees(float(np.sqrt(np.mean(dth * dth))))
     return ErrorStats(
         rmse_m=float(np.sqrt(np.mean(err * err))),
@@ -119,36 +110,20 @@ def score(
     )
 
 
-def score_fixes(
-    truth: TruthTrack, fixes: Sequence[tuple[float, float, float]], offset: tuple[float, float]
-) -> ErrorStats | None:
-    """Errors of raw fixes (t_meas, x, y) of the beacon at lever arm `offset`, against the robot's centre."""
-    if not fixes:
-        return None
+def fixes_trajectory(
+    fixes: Sequence[tuple[float, float, float]], offset: tuple[float, float], truth: Trajectory
+) -> Trajectory:
+    """Raw fixes (t_meas, x, y) of the beacon at lever arm `offset` moved to the robot's centre with the true heading
+    (no heading of their own)."""
     t = np.array([f[0] for f in fixes], dtype=np.float64)
     x = np.array([f[1] for f in fixes], dtype=np.float64)
     y = np.array([f[2] for f in fixes], dtype=np.float64)
-    if offset != (0.0, 0.0) and truth.has_heading:
+    if offset != (0.0, 0.0) and truth.has_heading and len(t):
         _, _, th, _ = truth.at(t)
         c, s = np.cos(th), np.sin(th)
         x = x - (offset[0] * c - offset[1] * s)
         y = y - (offset[0] * s + offset[1] * c)
-    return score(truth, t.tolist(), x.tolist(), y.tolist())
+    return Trajectory(t, x, y, np.full(len(t), np.nan))
 
 
-def fit_rotation(
-    local: Sequence[tuple[float, float]], world: Sequence[tuple[float, float]]
-) -> tuple[float, float, float]:
-    """The rotation and translation (theta, tx, ty) taking local points onto world points, least squares."""
-    a = np.asarray(local, dtype=np.float64)
-    b = np.asarray(world, dtype=np.float64)
-    ma, mb = a.mean(axis=0), b.mean(axis=0)
-    da, db = a - ma, b - mb
-    dot = float(np.sum(da[:, 0] * db[:, 0] + da[:, 1] * db[:, 1]))
-    cross = float(np.sum(da[:, 0] * db[:, 1] - da[:, 1] * db[:, 0]))
-    theta = math.atan2(cross, dot)
-    c, s = math.cos(theta), math.sin(theta)
-    return theta, float(mb[0] - (ma[0] * c - ma[1] * s)), float(mb[1] - (ma[0] * s + ma[1] * c))
-
-
-__all__ = ["ErrorStats", "TruthTrack", "fit_rotation", "score", "score_fixes"]
+__all__ = ["ErrorStats", "Trajectory", "fixes_trajectory", "score"]

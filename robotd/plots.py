@@ -7,14 +7,14 @@ only, with the non-interactive Agg back-end so that figures render on a headless
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from robotd.metrics import TruthTrack
+from robotd.ekf import wrap_angle
+from robotd.metrics import Trajectory
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -28,16 +28,6 @@ STYLES: dict[str, dict[str, object]] = {
 }
 
 
-@dataclass(frozen=True, slots=True)
-class Track:
-    """A time series of planar poses; theta may be all NaN where a method has no heading (IPS fixes)."""
-
-    t: FloatArray
-    x: FloatArray
-    y: FloatArray
-    theta: FloatArray
-
-
 def _pyplot() -> Any:
     import matplotlib  # noqa: PLC0415  (optional dependency: only the experiment tools plot)
 
@@ -47,32 +37,25 @@ def _pyplot() -> Any:
     return plt
 
 
-def _truth_at(truth: Track, t: FloatArray) -> Track:
-    """Truth at the times `t`, interpolated as the metrics do (metrics.TruthTrack)."""
-    x, y, theta, _ = TruthTrack.from_array(np.column_stack((truth.t, truth.x, truth.y, truth.theta))).at(t)
-    return Track(t, x, y, theta)
+def position_error(trajectory: Trajectory, truth: Trajectory) -> FloatArray:
+    """Distance from each pose of `trajectory` to truth at the same time (m)."""
+    x, y, _, _ = truth.at(trajectory.t)
+    return np.asarray(np.hypot(trajectory.x - x, trajectory.y - y), dtype=np.float64)
 
 
-def position_error(track: Track, truth: Track) -> FloatArray:
-    """Distance from each pose of `track` to truth at the same time (m)."""
-    ref = _truth_at(truth, track.t)
-    return np.asarray(np.hypot(track.x - ref.x, track.y - ref.y), dtype=np.float64)
-
-
-def heading_error_deg(track: Track, truth: Track) -> FloatArray:
+def heading_error_deg(trajectory: Trajectory, truth: Trajectory) -> FloatArray:
     """Wrapped heading error in degrees (NaN where either has no heading)."""
-    ref = _truth_at(truth, track.t)
-    wrapped = np.angle(np.exp(1j * (track.theta - ref.theta)))
-    return np.asarray(np.degrees(wrapped), dtype=np.float64)
+    _, _, theta, _ = truth.at(trajectory.t)
+    return np.asarray(np.degrees(wrap_angle(trajectory.theta - theta)), dtype=np.float64)
 
 
-def _drawing_order(methods: Mapping[str, Track]) -> list[str]:
+def _drawing_order(methods: Mapping[str, Trajectory]) -> list[str]:
     """Methods from the least to the most accurate as drawn: fixes under the filters, robotd's on top."""
     known = [name for name in STYLES if name in methods]
     return [name for name in methods if name not in STYLES] + known
 
 
-def trajectories(truth: Track, methods: Mapping[str, Track], path: Path, title: str) -> None:
+def trajectories(truth: Trajectory, methods: Mapping[str, Trajectory], path: Path, title: str) -> None:
     """Fig. 6: every method's x, y path against truth, equal axes, metres."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.0, 6.5), dpi=120)
@@ -115,8 +98,8 @@ def _off_scale_note(ax: Any, series: Mapping[str, FloatArray], limit: float, uni
 
 
 def errors_over_time(
-    truth: Track,
-    methods: Mapping[str, Track],
+    truth: Trajectory,
+    methods: Mapping[str, Trajectory],
     path: Path,
     title: str,
     *,

@@ -10,53 +10,64 @@ log without truth runs robotd's filter alone (their tracks stay empty).
 
 from __future__ import annotations
 
-import bisect
-import contextlib
 import dataclasses
-import gc
 import json
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import numpy.typing as npt
 
-from robotd import deadreckoning, ekf, kinematics
-from robotd.config import RobotdConfig
-from robotd.estimates import ReplayEstimator
-from robotd.estimates_file import write_estimates
+from robotd import ekf, kinematics
+from robotd.config import RobotdConfig, paper_preset
+from robotd.ekf import Cov, wrap_angle
+from robotd.estimates import write_estimates
 from robotd.estimator import Diagnostics, Estimator
-from robotd.logfile import Event, IpsFix, IpsLost, SensorLog, TwistSample
-from robotd.metrics import ErrorStats, TruthTrack, fit_rotation, score, score_fixes
-from robotd.wheelsteps import PERIOD_SLACK_S, step_ends
+from robotd.heading import fit_rotation
+from robotd.logfile import IpsFix, IpsLost, SensorLog, Truth, TwistSample, Wheels
+from robotd.metrics import ErrorStats, Trajectory, fixes_trajectory, score
+from robotd.wheelsteps import PERIOD_SLACK_S
 
 OUTPUT_PERIOD_S = 0.05  # the daemon's default pose rate (pose_socket.rate_hz: 20)
 METHODS = ("odometry", "ips", "paper_ekf", "ekf")
 
 
 @dataclass(slots=True)
-class Track:
-    """A method's estimates over time; `cov` (P's upper triangle: xx, xy, xt, yy, yt, tt) is empty for odometry."""
+class _Estimates:
+    """A method's estimates as they are taken: columns, and the covariances (P's upper triangle) of the filters."""
 
     t: list[float] = field(default_factory=list)
     x: list[float] = field(default_factory=list)
     y: list[float] = field(default_factory=list)
     theta: list[float] = field(default_factory=list)
-    cov: list[ekf.Cov] | npt.NDArray[np.float64] = field(default_factory=list)
+    cov: list[ekf.Cov] = field(default_factory=list)
+
+    def append(self, t: float, estimate: tuple[float, float, float, ekf.Cov | None]) -> None:
+        """Add the estimate (x, y, theta, P or None) at t."""
+        x, y, theta, p = estimate
+        self.t.append(t)
+        self.x.append(x)
+        self.y.append(y)
+        self.theta.append(theta)
+        if p is not None:
+            self.cov.append(p)
+
+    def trajectory(self) -> Trajectory:
+        """The poses as a Trajectory."""
+        return Trajectory.of(self.t, self.x, self.y, self.theta)
 
 
 @dataclass(slots=True)
 class ReplayResult:
-    """What a replay produced: robotd's estimates, every method's track and score, counters and problems.
+    """What a replay produced: every method's estimates and score, robotd's covariances, counters and problems.
 
     Without truth in the log, `paper` and `odometry` are empty and `metrics` is None.
     """
 
-    ekf: Track
-    paper: Track
-    odometry: Track
+    ekf: Trajectory
+    ekf_cov: list[Cov]  # P's upper triangle, one per estimate of robotd's filter
+    paper: Trajectory
+    odometry: Trajectory
     fixes: list[tuple[float, float, float]]
     metrics: dict[str, ErrorStats | None] | None
     counters: dict[str, int]
@@ -66,22 +77,6 @@ class ReplayResult:
     geometry: kinematics.Geometry
     ips_offset: tuple[float, float]
     counts_per_rev: int
-
-
-@contextlib.contextmanager
-def cyclic_gc_paused() -> Iterator[None]:
-    """Pause Python's cyclic garbage collector for a replay (restored after, as it was).
-
-    A replay builds a few hundred thousand long-lived objects and no reference cycles: the collector's passes over
-    them would be pure cost (a fifth of the run).
-    """
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
 
 
 def robot_from_log(
@@ -122,72 +117,39 @@ def robot_from_log(
     return geometry, offset, cpr, problems
 
 
-def _record_odometry(track: Track, t: float, est: Estimator) -> None:
-    """Append the dead-reckoning estimate at t (an Estimator that never sees a fix: always has a pose)."""
-    pose = est.pose(t)
-    track.t.append(t)
-    track.x.append(pose.x)
-    track.y.append(pose.y)
-    track.theta.append(pose.theta)
-
-
-def _marked_track(est: ReplayEstimator) -> Track:
-    """The outputs an estimator marked, as a Track."""
-    t, x, y, theta, cov = est.marked()
-    return Track(t, x, y, theta, cov)
-
-
 def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
-    """Run the three methods over a parsed log and score them when it holds truth (robotd's filter alone without).
+    """Run the three methods over a parsed log, event by event through the daemon's Estimator, and score them when
+    the log holds truth (robotd's filter alone without).
 
-    The log is read as columns (SensorLog.columns): wheel samples reach the filters in runs between the other
-    events (ReplayEstimator.on_wheel_samples), the same inputs in the same order as one on_wheels call each; a clean
-    wheel column, or twists alone, is loaded at once (ReplayEstimator.load_wheels, load_twists) and the outputs are
-    marked and computed together at the end (ReplayEstimator.marked). Odometry alone is computed for the whole log at
-    once (robotd.deadreckoning) when its wheel times are clean and it has no twist samples, and with a third
-    estimator otherwise.
+    Odometry alone is an Estimator that is never given a fix, started at the origin and placed on the true start.
     """
     geometry, offset, cpr, problems = robot_from_log(log, config)
-    columns = log.columns()
-    scored = len(columns.truth) > 0  # the baselines exist only to be scored: without truth, robotd's filter alone
-    robotd = ReplayEstimator(config.ekf, geometry, offset, cpr)
-    paper = ReplayEstimator.paper_filter(config.ekf, geometry, cpr) if scored else None
-    times: list[float] = columns.wheels_t.tolist()
-    others = columns.others
-    after: list[int] = columns.others_after().tolist()
-    is_twist = [type(e) is TwistSample for e in others]
-    has_twists = any(is_twist)
-    vectorised = deadreckoning.applies(columns.wheels_t) and not has_twists
-    odometry: ReplayEstimator | None = None
-    if scored and not vectorised:
+    events = log.events
+    truth_samples = [(e.t, e.x, e.y, e.theta) for e in events if isinstance(e, Truth)]
+    truth = Trajectory.from_samples(truth_samples) if truth_samples else None
+    scored = truth is not None  # the baselines exist only to be scored
+    robotd = Estimator(config.ekf, geometry, offset, cpr)
+    paper = Estimator(paper_preset(config.ekf), geometry, offset, cpr) if scored else None
+    odometry = None
+    if scored:
         odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later
-        odometry = ReplayEstimator(odo_config, geometry, offset, cpr)
+        odometry = Estimator(odo_config, geometry, offset, cpr)
     filters = tuple(est for est in (robotd, paper, odometry) if est is not None)
-    # A clean input column (wheels, or twists alone) makes all its prediction steps at once (numpy), and outputs are
-    # computed together; the other events are fed between runs of its samples (`events`, `events_after`).
-    loaded = False
-    step_period = config.ekf.predict_period_s
-    input_t, events, events_after = times, others, after
-    ends = step_ends(times, step_period) if not has_twists and odometry is None else []
-    if ends:
-        outcomes = [est.load_wheels(columns.wheels_t, columns.wheels_ticks, ends) for est in filters]
-        loaded = all(outcomes)  # (the same columns: all or none)
-    elif has_twists and not times:
-        twists = np.array([(e.t, e.vx, e.vy, e.wz) for e in others if type(e) is TwistSample], dtype=np.float64)
-        outcomes = [est.load_twists(twists[:, 0], twists[:, 1], twists[:, 2], twists[:, 3]) for est in filters]
-        loaded = all(outcomes)
-        if loaded:
-            input_t = twists[:, 0].tolist()
-            events = [e for e, twist in zip(others, is_twist, strict=True) if not twist]
-            twists_before = np.cumsum(is_twist)  # (at an event that is not a twist: the twists before it)
-            events_after = twists_before[~np.array(is_twist)].tolist()
-    odometry_track = Track()
-    odo_records: tuple[list[float], list[int]] = ([], [])  # record times and wheel samples before them
+    taken = (_Estimates(), _Estimates(), _Estimates())  # robotd's, the paper's, odometry's
+    outputs = [(taken[0], robotd)] + ([(taken[1], paper)] if paper is not None else [])
+    # an output every OUTPUT_PERIOD_S of input time (wheel samples, twists; fixes only in a log without inputs)
+    inputs = any(type(e) is Wheels or type(e) is TwistSample for e in events)
     fixes: list[tuple[float, float, float]] = []
     diagnostics: list[Diagnostics] = []
-
-    def on_event(event: Event) -> None:
-        if type(event) is IpsFix:
+    last_out = -math.inf
+    for event in events:
+        if isinstance(event, Wheels):
+            for est in filters:
+                est.on_wheels(event.t, event.ticks)
+        elif isinstance(event, TwistSample):
+            for est in filters:
+                est.on_twist(event.t, event.vx, event.vy, event.wz)
+        elif isinstance(event, IpsFix):
             diagnostic = robotd.on_fix(event.t, event.x, event.y, event.t_meas)
             if diagnostic is not None:
                 diagnostics.append(diagnostic)
@@ -195,107 +157,39 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
                 paper.on_fix(event.t, event.x, event.y, event.t_meas)
             if math.isfinite(event.x) and math.isfinite(event.y) and math.isfinite(event.t_meas):
                 fixes.append((event.t_meas, event.x, event.y))
-        elif type(event) is TwistSample:
-            for est in filters:
-                est.on_twist(event.t, event.vx, event.vy, event.wz)
-        elif type(event) is IpsLost:
-            robotd.on_fix_lost(event.t)
-            if paper is not None:
-                paper.on_fix_lost(event.t)
-
-    if loaded:
-        # outputs at the input samples that end each OUTPUT_PERIOD_S, marked in runs between the other events
-        marks = ends if ends and step_period == OUTPUT_PERIOD_S else step_ends(input_t, OUTPUT_PERIOD_S)
-        mark_array = np.array(marks, dtype=np.int64)
-        fed = marked = 0
-        for index in range(len(events) + 1):
-            stop = events_after[index] if index < len(events) else len(input_t)
-            if fed < stop:
-                for est in filters:
-                    est.on_loaded_samples(fed, stop)
-                fed = stop
-            upto = bisect.bisect_left(marks, stop, marked)
-            if upto > marked:
-                robotd.mark_samples(mark_array[marked:upto])
+            if inputs:
+                continue
+        else:
+            if isinstance(event, IpsLost):
+                robotd.on_fix_lost(event.t)
                 if paper is not None:
-                    paper.mark_samples(mark_array[marked:upto])
-                if odometry is not None:
-                    odometry.mark_samples(mark_array[marked:upto], unplaced=True)
-                marked = upto
-            if index < len(events):
-                on_event(events[index])
-        if odometry is not None:
-            odometry_track = _marked_track(odometry)
-        elif scored:  # (wheels: dead reckoning below, at the same outputs)
-            odo_records[0].extend(columns.wheels_t[mark_array].tolist())
-            odo_records[1].extend((mark_array + 1).tolist())
-    else:
-        # an output every OUTPUT_PERIOD_S of input time (wheel samples, twists; fixes only in a log without inputs)
-        inputs = bool(times) or has_twists
-        ticks: list[tuple[int, int, int, int]] = list(
-            zip(*(column.tolist() for column in columns.wheels_ticks.T), strict=True)
-        )
-        last_out = -math.inf
-        fed = 0
-
-        def record(t: float, samples: int) -> None:
-            robotd.mark(t)
-            if paper is None:
-                return
-            paper.mark(t)
-            if odometry is not None:
-                _record_odometry(odometry_track, t, odometry)
-            else:
-                odo_records[0].append(t)
-                odo_records[1].append(samples)
-
-        for index in range(len(others) + 1):
-            stop = after[index] if index < len(others) else len(times)
-            for i in range(fed, stop):
-                if times[i] - last_out >= OUTPUT_PERIOD_S - PERIOD_SLACK_S:
-                    for est in filters:
-                        est.on_wheel_samples(times, ticks, fed, i + 1)
-                    fed = i + 1
-                    record(times[i], fed)
-                    last_out = times[i]
-            if fed < stop:
-                for est in filters:
-                    est.on_wheel_samples(times, ticks, fed, stop)
-                fed = stop
-            if index == len(others):
-                break
-            event = others[index]
-            on_event(event)
-            output = type(event) is TwistSample or (type(event) is IpsFix and not inputs)
-            if output and event.t - last_out >= OUTPUT_PERIOD_S - PERIOD_SLACK_S:
-                record(event.t, fed)
-                last_out = event.t
-    if scored and odometry is None:
-        ox, oy, oth = deadreckoning.poses_at(
-            columns.wheels_t,
-            columns.wheels_ticks,
-            np.array(odo_records[0], dtype=np.float64),
-            np.array(odo_records[1], dtype=np.int64),
-            geometry,
-            cpr,
-            config.ekf.predict_period_s,
-        )
-        odometry_track = Track(odo_records[0], ox.tolist(), oy.tolist(), oth.tolist())
-    tracks = (_marked_track(robotd), _marked_track(paper) if paper is not None else Track(), odometry_track)
+                    paper.on_fix_lost(event.t)
+            continue
+        t = event.t
+        if t - last_out >= OUTPUT_PERIOD_S - PERIOD_SLACK_S:
+            last_out = t
+            for estimates, est in outputs:
+                position = est.position(t)
+                if position is not None:
+                    estimates.append(t, position)
+            if odometry is not None:  # never placed by a fix: the initial pose carried
+                pose = odometry.pose(t)
+                taken[2].append(t, (pose.x, pose.y, pose.theta, None))
+    _place_odometry(taken[2], truth)
+    ours, papers, odometry_alone = (estimates.trajectory() for estimates in taken)
     metrics = None
-    if scored:
-        reference = TruthTrack.from_array(columns.truth)
-        _place_odometry(tracks[2], reference)
+    if truth is not None:
         metrics = {
-            "odometry": score(reference, tracks[2].t, tracks[2].x, tracks[2].y, tracks[2].theta),
-            "ips": score_fixes(reference, fixes, offset),
-            "paper_ekf": score(reference, tracks[1].t, tracks[1].x, tracks[1].y, tracks[1].theta),
-            "ekf": score(reference, tracks[0].t, tracks[0].x, tracks[0].y, tracks[0].theta),
+            "odometry": score(truth, odometry_alone),
+            "ips": score(truth, fixes_trajectory(fixes, offset, truth)),
+            "paper_ekf": score(truth, papers),
+            "ekf": score(truth, ours),
         }
     return ReplayResult(
-        ekf=tracks[0],
-        paper=tracks[1],
-        odometry=tracks[2],
+        ekf=ours,
+        ekf_cov=taken[0].cov,
+        paper=papers,
+        odometry=odometry_alone,
         fixes=fixes,
         metrics=metrics,
         counters=dict(robotd.counters),
@@ -308,34 +202,25 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     )
 
 
-def _place(track: Track, x0: float, y0: float, theta0: float) -> None:
-    """Move a track computed from (0, 0, 0) so that it starts at (x0, y0, theta0)."""
-    c, s = math.cos(theta0), math.sin(theta0)
-    for i in range(len(track.t)):
-        x, y = track.x[i], track.y[i]
-        track.x[i], track.y[i] = x0 + x * c - y * s, y0 + x * s + y * c
-        track.theta[i] = (track.theta[i] + theta0 + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def _place_odometry(track: Track, truth: TruthTrack) -> None:
-    """Put the odometry track on the true initial pose (evaluation only: the filters never see truth)."""
-    if not track.t:
+def _place_odometry(odometry: _Estimates, truth: Trajectory | None) -> None:
+    """Put the odometry track, computed from (0, 0, 0), on the true initial pose (evaluation only: the filters never
+    see truth); without a true heading, turned by the rotation that best lays its first metre onto the truth."""
+    if not odometry.t or truth is None:
         return
-    import numpy as np  # noqa: PLC0415 - only the evaluation needs it here
-
-    t0 = np.array([track.t[0]])
-    x0, y0, th0, _ = truth.at(t0)
+    x0, y0, th0, _ = truth.at(np.array(odometry.t[:1]))
     theta0 = float(th0[0])
     if not math.isfinite(theta0):
-        # no true heading: the rotation that best lays the first metre of odometry onto the truth
         travelled = 0.0
         end = 1
-        while end < len(track.t) and travelled < 1.0:
-            travelled += math.hypot(track.x[end] - track.x[end - 1], track.y[end] - track.y[end - 1])
+        while end < len(odometry.t) and travelled < 1.0:
+            travelled += math.hypot(odometry.x[end] - odometry.x[end - 1], odometry.y[end] - odometry.y[end - 1])
             end += 1
-        tx, ty, _, _ = truth.at(np.array(track.t[:end]))
-        theta0 = fit_rotation(list(zip(track.x[:end], track.y[:end], strict=True)), list(zip(tx, ty, strict=True)))[0]
-    _place(track, float(x0[0]), float(y0[0]), theta0)
+        tx, ty, _, _ = truth.at(np.array(odometry.t[:end]))
+        theta0 = fit_rotation(odometry.x[:end], odometry.y[:end], tx.tolist(), ty.tolist())[0]
+    c, s = math.cos(theta0), math.sin(theta0)
+    for i, (x, y) in enumerate(zip(odometry.x, odometry.y, strict=True)):
+        odometry.x[i], odometry.y[i] = float(x0[0]) + x * c - y * s, float(y0[0]) + x * s + y * c
+        odometry.theta[i] = wrap_angle(odometry.theta[i] + theta0)
 
 
 def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
@@ -343,9 +228,10 @@ def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     written = [out_dir / "estimates.jsonl"]
     e = result.ekf
-    cov = np.asarray(e.cov, dtype=np.float64).reshape(-1, 6)[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]]  # ekf.cov_full
     with open(written[0], "wb") as stream:
-        write_estimates(stream, e.t, e.x, e.y, e.theta, cov)
+        write_estimates(
+            stream, zip(e.t.tolist(), e.x.tolist(), e.y.tolist(), e.theta.tolist(), result.ekf_cov, strict=True)
+        )
     if result.metrics is not None:
         metrics = {name: (stats.as_dict() if stats is not None else None) for name, stats in result.metrics.items()}
         written.append(out_dir / "metrics.json")
@@ -383,8 +269,6 @@ def format_table(result: ReplayResult) -> str:
 __all__ = [
     "METHODS",
     "ReplayResult",
-    "Track",
-    "cyclic_gc_paused",
     "format_table",
     "replay",
     "robot_from_log",

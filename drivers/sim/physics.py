@@ -20,7 +20,7 @@ import random
 from dataclasses import dataclass
 
 from drivers.sim.floor import Floor
-from robotd.kinematics import Geometry
+from robotd.kinematics import Geometry, forward
 
 Quad = tuple[float, float, float, float]
 
@@ -110,10 +110,8 @@ class Body:
             return
         t1, t2, t3, t4 = self.tractions()
         a1, a2, a3, a4 = wheel_turns[0] * t1, wheel_turns[1] * t2, wheel_turns[2] * t3, wheel_turns[3] * t4
-        r, k = self.geometry.wheel_radius_m, self.geometry.lx_m + self.geometry.ly_m
-        dx = r / 4.0 * (a1 + a2 + a3 + a4)
-        dy = r / 4.0 * (-a1 + a2 + a3 - a4) * self.floor.params.lateral_efficiency
-        dtheta = r / (4.0 * k) * (-a1 + a2 - a3 + a4)
+        ground = forward(self.geometry, (a1, a2, a3, a4))  # ground travel of the wheels: the body's displacement
+        dx, dy, dtheta = ground.vx, ground.vy * self.floor.params.lateral_efficiency, ground.wz
         mid = self.theta + 0.5 * dtheta
         c, s = math.cos(mid), math.sin(mid)
         self.x += c * dx - s * dy

@@ -8,15 +8,18 @@ import multiprocessing
 import multiprocessing.connection
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+import pigpio
 
-from drivers.encoders import EdgeDecoder, PigpioEncoders, wiring
+from drivers.encoders import PigpioEncoders, wiring
+from drivers.pigpio_link import PigpiodUnavailableError
 from drivers.pigpio_protocol import REPORT_SIZE, encode_reports
-from drivers.quadrature import EncoderWiring
+from drivers.quadrature import EncoderWiring, transition_table
 from drivers.sim.quadrature_signal import encoder_words, merge_streams, position_of_state
 from robotd.config import EncodersConfig, PigpiodConfig
 
@@ -48,6 +51,61 @@ def recorded_stream(edges: int, encoders: list[EncoderWiring]) -> tuple[bytes, l
     ticks, levels = merge_streams(streams)
     seq = (np.arange(len(ticks)) & 0xFFFF).astype(np.uint16)
     return encode_reports(seq, (ticks & 0xFFFFFFFF).astype(np.uint32), levels), truth
+
+
+class EdgeDecoder:
+    """Quadrature decoding one edge at a time in Python: the state machine a `pi.callback` per edge would run."""
+
+    def __init__(self, encoders: Sequence[EncoderWiring], decoding: str, initial_levels: int) -> None:
+        table = transition_table(decoding)  # type: ignore[arg-type]
+        self._table = [int(step) for step in table]
+        self._wheel_of: dict[int, tuple[int, int]] = {}
+        for wheel, encoder in enumerate(encoders):
+            self._wheel_of[encoder.a] = (wheel, 2)  # A is the high bit of the state
+            self._wheel_of[encoder.b] = (wheel, 1)
+        self._signs = [e.sign for e in encoders]
+        self._states = [((initial_levels >> e.a) & 1) << 1 | ((initial_levels >> e.b) & 1) for e in encoders]
+        self.counts = [0] * len(encoders)
+
+    def on_edge(self, gpio: int, level: int, _tick: int) -> None:
+        """pigpio callback signature: one GPIO changed to `level` at `tick`."""
+        wheel, bit = self._wheel_of[gpio]
+        previous = self._states[wheel]
+        state = (previous | bit) if level else (previous & ~bit)
+        self._states[wheel] = state
+        self.counts[wheel] += self._table[previous * 4 + state] * self._signs[wheel]
+
+
+class CallbackEncoders:
+    """The per-edge baseline: pigpio's client library calls `EdgeDecoder.on_edge` from its thread for every edge.
+
+    Only a baseline to benchmark against; it cannot keep up with four encoders at speed on a Pi 4.
+    """
+
+    def __init__(self, encoders: EncodersConfig, pigpiod: PigpiodConfig) -> None:
+
+        self._pi: Any = pigpio.pi(pigpiod.host, pigpiod.port, show_errors=False)
+        if not self._pi.connected:
+            raise PigpiodUnavailableError(pigpiod.host, pigpiod.port, "pigpio client could not connect")
+        encoder_wiring = wiring(encoders)
+        pull = {"up": pigpio.PUD_UP, "down": pigpio.PUD_DOWN, "off": pigpio.PUD_OFF}[encoders.pull]
+        for encoder in encoder_wiring:
+            for gpio in (encoder.a, encoder.b):
+                self._pi.set_mode(gpio, pigpio.INPUT)
+                self._pi.set_pull_up_down(gpio, pull)
+                self._pi.set_glitch_filter(gpio, encoders.glitch_filter_us)
+        self.decoder = EdgeDecoder(encoder_wiring, encoders.decoding, self._pi.read_bank_1())
+        self._callbacks = [
+            self._pi.callback(gpio, pigpio.EITHER_EDGE, self.decoder.on_edge)
+            for encoder in encoder_wiring
+            for gpio in (encoder.a, encoder.b)
+        ]
+
+    def close(self) -> None:
+        """Cancel the callbacks and disconnect."""
+        for callback in self._callbacks:
+            callback.cancel()
+        self._pi.stop()
 
 
 @dataclass(frozen=True, slots=True)

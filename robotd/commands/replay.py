@@ -11,7 +11,7 @@ from pathlib import Path
 from robotd import librsf, logcheck
 from robotd.config import RobotdConfig, load, parse
 from robotd.logfile import read_log
-from robotd.replay import cyclic_gc_paused, format_table, replay, robot_from_log, write_outputs
+from robotd.replay import format_table, replay, robot_from_log, write_outputs
 
 # sysexits.h: what a script calling `robotd replay` can tell apart
 EX_DATAERR = 65  # the log cannot be replayed (no events, times going backwards)
@@ -42,11 +42,6 @@ def run_replay(args: argparse.Namespace) -> int:
     """Replay the log, write the outputs, print the table; bad lines are skipped and listed on stderr (exit 0), a log
     that cannot be replayed or read and an output that cannot be written give one line and a sysexits status."""
     config: RobotdConfig = load(args.config) if args.config else parse("")
-    with cyclic_gc_paused():
-        return _replay(args, config)
-
-
-def _replay(args: argparse.Namespace, config: RobotdConfig) -> int:
     started = time.perf_counter()
     out = Path(args.out)
     try:  # before the replay: a bad --out should not cost a whole replay first
@@ -78,12 +73,10 @@ def _replay(args: argparse.Namespace, config: RobotdConfig) -> int:
         return EX_IOERR
     elapsed = time.perf_counter() - started
     print(format_table(result))
-    columns = log.columns()
-    if len(columns):
-        first, last = columns.time_span()
-        span = last - first
+    if log.events:
+        span = log.events[-1].t - log.events[0].t
         rate = span / max(elapsed, 1e-9)
-        print(f"{len(columns)} events, {span:.1f} s of log in {elapsed:.2f} s ({rate:.0f}x real time)")
+        print(f"{len(log.events)} events, {span:.1f} s of log in {elapsed:.2f} s ({rate:.0f}x real time)")
     print("wrote " + ", ".join(str(path) for path in written))
     return 0
 

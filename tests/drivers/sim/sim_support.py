@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from robotd.config import RobotdConfig, load
-from robotd.kinematics import Geometry, dead_reckon, forward
+from robotd.kinematics import Geometry, forward
 from robotd.logfile import Event, Truth, Wheels
 
 REPO = Path(__file__).resolve().parents[3]
@@ -51,7 +51,9 @@ def odometry_errors(events: list[Event], geometry: Geometry, counts_per_rev: int
                     for a, b in zip(event.ticks, previous.ticks, strict=True)
                 ]
                 twist = forward(geometry, (speeds[0], speeds[1], speeds[2], speeds[3]))
-                x, y, theta = dead_reckon(x, y, theta, twist, dt)
+                c, s = math.cos(theta), math.sin(theta)  # dead reckoning, the paper's eq. 2
+                x, y = x + (twist.vx * c - twist.vy * s) * dt, y + (twist.vx * s + twist.vy * c) * dt
+                theta += twist.wz * dt
             previous = event
         elif isinstance(event, Truth) and previous is not None and previous.t == event.t:
             worst_position = max(worst_position, math.hypot(x - event.x, y - event.y))

@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 from wheels_support import wait_until, walk
 
-from drivers.encoders import CallbackEncoders, PigpioEncoders, WheelTicks, wiring
+from drivers.encoders import PigpioEncoders, WheelTicks, wiring
 from drivers.pigpio_link import PigpiodUnavailableError
 from drivers.pigpio_protocol import Mode, Pull
 from drivers.quadrature import Decoding
 from drivers.sim.quadrature_signal import encoder_words, merge_streams, position_of_state
 from drivers.sim.vpigpiod import VirtualPigpiod
+from robotd.bench.encoders import CallbackEncoders
 from robotd.config import EncodersConfig, PigpiodConfig
 
 # The virtual pigpiod starts 5 s before pigpio's 32-bit tick wraps, and the test stamps its edges from 40 ms before the

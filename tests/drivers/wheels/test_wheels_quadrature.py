@@ -10,11 +10,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from wheels_support import levels_of_positions, walk
 
-from drivers.encoders import EdgeDecoder, PigpioEncoders, wiring
+from drivers.encoders import PigpioEncoders, wiring
 from drivers.notify_stream import SequenceGaps, TickClock
 from drivers.quadrature import Decoding, EdgeTimedSpeed, EncoderWiring, QuadratureDecoder
 from drivers.sim.quadrature_signal import encoder_words, merge_streams
-from robotd.bench.encoders import per_edge_replay, recorded_stream
+from robotd.bench.encoders import EdgeDecoder, per_edge_replay, recorded_stream
 from robotd.config import EncodersConfig, PigpiodConfig
 
 A, B = 4, 17

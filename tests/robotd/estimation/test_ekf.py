@@ -39,25 +39,39 @@ def _full(p: ekf.Cov) -> np.ndarray:
     return np.array(ekf.cov_full(p)).reshape(3, 3)
 
 
+def _control_noise(noise: ekf.ControlNoise, th: float, vx: float, vy: float, wz: float, dt: float) -> np.ndarray:
+    """Q = G M G^T as design.md states it: M the control noise of this motion, G = d f / d u at heading th."""
+    speed = math.hypot(vx, vy)
+    m = np.diag(
+        [
+            noise.lin2 * speed / dt + noise.const_v2,
+            noise.lat2 * speed / dt + noise.const_v2,
+            (noise.slip2 * speed + noise.turn2 * abs(wz)) / dt + noise.const_w2,
+        ]
+    )
+    c, s = math.cos(th), math.sin(th)
+    g = np.array([[c * dt, -s * dt, 0.0], [s * dt, c * dt, 0.0], [0.0, 0.0, dt]])
+    return np.asarray(g @ m @ g.T)
+
+
 def test_predict_and_update_equal_filterpy_step_by_step() -> None:
     rng = random.Random(7)
     x, y, th = 0.3, -0.2, 0.4
     p = _random_cov(rng)
     ref = _ModelEKF()
-    noise = ekf.ControlNoise(lin2=4e-4, lat2=9e-4, slip2=2.5e-3, turn2=2.5e-3, rel2=0.01)
+    noise = ekf.ControlNoise(lin2=4e-4, lat2=9e-4, slip2=2.5e-3, turn2=2.5e-3, const_v2=0.01, const_w2=0.02)
     for step in range(3000):
         if step % 200 == 0:  # start again from a random state so that every part of the state space is visited
             x, y, th, p = rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-3, 3), _random_cov(rng)
         ref.x = np.array([[x], [y], [th]])
         ref.P = _full(p)
         vx, vy, wz, dt = rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-2, 2), rng.uniform(0.001, 0.2)
-        q = ekf.process_noise(th, vx, vy, wz, dt, noise)
         c, s = math.cos(th), math.sin(th)
         ref.F = np.array([[1, 0, -(vx * s + vy * c) * dt], [0, 1, (vx * c - vy * s) * dt], [0, 0, 1]])
-        ref.Q = _full(q)
+        ref.Q = _control_noise(noise, th, vx, vy, wz, dt)
         ref.u = (vx, vy, wz, dt)
         ref.predict()
-        x, y, th, p = ekf.predict(x, y, th, p, vx, vy, wz, dt, q)
+        x, y, th, p = ekf.predict(x, y, th, p, vx, vy, wz, dt, noise, midpoint=False)
         assert np.allclose([x, y], ref.x.ravel()[:2], rtol=0, atol=1e-9)
         assert abs(ekf.wrap_angle(th - float(ref.x[2, 0]))) < 1e-9
         assert np.allclose(_full(p), ref.P, rtol=0, atol=1e-9)
@@ -123,7 +137,7 @@ def test_covariance_stays_symmetric_positive_definite(
     p = ekf.cov_diag(1.0, 1.0, 0.5)
     noise = ekf.ControlNoise(lin2=4e-4, lat2=9e-4, slip2=2.5e-3, turn2=2.5e-3)
     for vx, vy, wz, dt, fix, zx, zy, r in steps:
-        x, y, th, p = ekf.predict(x, y, th, p, vx, vy, wz, dt, ekf.process_noise(th, vx, vy, wz, dt, noise))
+        x, y, th, p = ekf.predict(x, y, th, p, vx, vy, wz, dt, noise, midpoint=True)
         if fix:
             inn = ekf.innovation(x, y, th, p, zx, zy, r * r, 0.1, -0.05)
             x, y, th, p = ekf.update(x, y, th, p, inn, r * r, freeze_heading=frozen)
@@ -150,3 +164,26 @@ def test_frozen_heading_leaves_theta_alone() -> None:
     _, _, th_free, _ = ekf.update(0.0, 0.0, 0.3, p, inn, 0.001)
     assert math.isclose(th, 0.3, abs_tol=1e-12)
     assert th_free != 0.3
+
+
+def test_the_midpoint_step_is_the_euler_step_at_the_midpoint_heading() -> None:
+    noise = ekf.ControlNoise(lin2=4e-4, lat2=9e-4, slip2=2.5e-3, turn2=2.5e-3)
+    rng = random.Random(5)
+    for _ in range(200):
+        x, y, th, p = rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-3, 3), _random_cov(rng)
+        vx, vy, wz, dt = rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-2, 2), rng.uniform(0.001, 0.2)
+        mx, my, mth, _ = ekf.predict(x, y, th, p, vx, vy, wz, dt, noise, midpoint=True)
+        mid = th + 0.5 * wz * dt
+        ex, ey, _, _ = ekf.predict(x, y, mid, p, vx, vy, wz, dt, noise, midpoint=False)
+        assert (mx, my) == (ex, ey)
+        assert mth == ekf.wrap_angle(th + wz * dt)
+
+
+def test_angles_wrap_the_same_as_floats_and_as_arrays() -> None:
+    angles = [-7.0, -math.pi, -0.5, 0.0, math.pi, 3 * math.pi + 0.25, 100.0]
+    wrapped = ekf.wrap_angle(np.array(angles))
+    for angle, w in zip(angles, wrapped, strict=True):
+        assert ekf.wrap_angle(angle) == w
+        assert -math.pi <= w < math.pi
+        assert math.isclose(math.cos(w), math.cos(angle), abs_tol=1e-12)
+        assert math.isclose(math.sin(w), math.sin(angle), abs_tol=1e-12)

@@ -7,8 +7,8 @@ import math
 import random
 
 from robotd import kinematics
-from robotd.config import EkfConfig
-from robotd.estimator import Estimator, TrackState, Verdict
+from robotd.config import EkfConfig, paper_preset
+from robotd.estimator import Estimator, PositionMode, Verdict
 
 GEOMETRY = kinematics.Geometry()
 CPR = 6800
@@ -70,7 +70,7 @@ def test_three_metre_jump_in_one_fix_moves_the_estimate_less_than_a_centimetre()
 
 
 def test_the_paper_filter_has_no_gate() -> None:
-    paper = Estimator.paper_filter(_config(), GEOMETRY, CPR)
+    paper = Estimator(paper_preset(_config()), GEOMETRY, (0.0, 0.0), CPR)
     _drive(paper, 5.0, (0.3, 0.0, 0.0), noise=0.02)
     before = paper.pose()
     diag = paper.on_fix(5.0, before.x + 3.0, before.y, 5.0)
@@ -185,11 +185,11 @@ def test_an_unknown_initial_heading_is_acquired_by_driving() -> None:
 def test_the_first_fixes_seed_the_position_even_if_the_first_is_an_outlier() -> None:
     est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
     est.on_twist(0.0, 0.0, 0.0, 0.0)
-    assert est.pose().state is TrackState.INITIALISING
+    assert est.pose().state is PositionMode.INITIALISING
     assert est.on_fix(0.1, 3.5, 3.0, 0.1).verdict is Verdict.SEEDING  # type: ignore[union-attr]
     _drive(est, 2.0, (0.0, 0.0, 0.0), true_start=(1.0, 1.0, 0.0), noise=0.02)
     pose = est.pose()
-    assert pose.state is TrackState.TRACKING
+    assert pose.state is PositionMode.TRACKING
     assert math.hypot(pose.x - 1.0, pose.y - 1.0) < 0.03
     assert est.counters["fixes_seeded"] == 1
 
@@ -280,7 +280,7 @@ def test_with_the_heading_unknown_the_fixes_steer_the_position_until_a_window_gi
             est.on_twist(t, 0.3, 0.0, 0.0)
             if k % 12 == 0:
                 est.on_fix(t, x + rng.gauss(0, 0.03), y + rng.gauss(0, 0.03), t)
-            if est.pose().state is not TrackState.INITIALISING:
+            if est.pose().state is not PositionMode.INITIALISING:
                 errors.append(math.hypot(est.pose(t).x - x, est.pose(t).y - y))
         worst[sigma] = max(errors)
         assert abs(math.remainder(est.pose().theta - th, 2 * math.pi)) < 0.1  # acquired either way

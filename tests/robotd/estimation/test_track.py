@@ -1,95 +1,83 @@
-"""The odometry track's closed form, the anchors' history, and the trimmed daemon-mode estimator."""
+"""The odometry track, the anchors' history carried step by step, and the trimmed daemon estimator."""
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import random
 
-import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robotd import ekf, kinematics
+from robotd import ekf, estimator, kinematics
 from robotd.config import EkfConfig
-from robotd.estimates import ReplayEstimator
 from robotd.estimator import Estimator
 from robotd.fixgate import FixGate
-from robotd.history import Predictor
-from robotd.track import OdometryTrack, State, StepTwists
+from robotd.history import Anchor, History, Predictor, State
+from robotd.modes import Modes
+from robotd.track import OdometryTrack
 
 GEOMETRY = kinematics.Geometry()
 CPR = 6800
 NOISE = ekf.ControlNoise(lin2=4e-4, lat2=9e-4, slip2=2.5e-3, turn2=2.5e-3)
-PAPER_NOISE = ekf.ControlNoise(const_v2=0.01, const_w2=0.04)
 
 
-def _random_track(
-    rng: random.Random, n: int, noise: ekf.ControlNoise, *, midpoint: bool, start_x: float
-) -> OdometryTrack:
-    track = OdometryTrack(noise, midpoint=midpoint)
+def _random_track(rng: random.Random, n: int) -> OdometryTrack:
+    track = OdometryTrack(midpoint=True)
     track.start(0.0, (0.0, 0.0, 0.0))
-    t = np.cumsum([rng.uniform(0.01, 0.2) for _ in range(n)])
-    vx = np.array([rng.uniform(-0.6, 0.6) for _ in range(n)])
-    vy = np.array([rng.uniform(-0.4, 0.4) for _ in range(n)])
-    wz = np.array([rng.uniform(-2.0, 2.0) for _ in range(n)])
-    # in two batches: extending a track continues its totals
-    half = n // 2
-    for part in (slice(0, half), slice(half, n)):
-        track.extend(StepTwists(t[part], vx[part], vy[part], wz[part], (vx[part], vy[part], wz[part])))
-    # a track far from its origin (the totals' rounding grows with the distance squared)
-    track.ox = [x + start_x for x in track.ox]
-    track.sums = _recentred(track, start_x)
+    t = 0.0
+    for _ in range(n):
+        t += rng.uniform(0.01, 0.2)
+        u = (rng.uniform(-0.6, 0.6), rng.uniform(-0.4, 0.4), rng.uniform(-2.0, 2.0))
+        track.append(t, u, u)
     return track
 
 
-def _recentred(track: OdometryTrack, shift: float) -> list[list[float]]:
-    """The running totals after moving every odometry position by +shift in x (w = perp(o) moves by +shift in y)."""
-    out = []
-    for row in track.sums:
-        c, s1x, s1y, s2xx, s2xy, s2yy, *rest = row
-        out.append(
-            [c, s1x, s1y + c * shift, s2xx, s2xy + s1x * shift, s2yy + 2 * s1y * shift + c * shift * shift, *rest]
-        )
-    return out
+def _piecewise(track: OdometryTrack, state: State, start: float, end: float, predictor: Predictor) -> State:
+    """The state moved from `start` to `end` in pieces cut at the step ends, each with its step's twist (the newest
+    step's held twist past it)."""
+    cuts = [start] + [t for t in track.t if start < t < end] + [end]
+    for a, b in itertools.pairwise(cuts):
+        if b <= a:
+            continue
+        k = next((i for i, t in enumerate(track.t) if t >= b), None)
+        u = (track.vx[k], track.vy[k], track.wz[k]) if k is not None else (track.hx[-1], track.hy[-1], track.hw[-1])
+        state = predictor.move(state, u, b - a)
+    return state
 
 
-def _stepwise(track: OdometryTrack, b: int, j: int, state: State, predictor: Predictor) -> State:
-    x, y, th, p = state
-    for k in range(b + 1, j + 1):
-        x, y, th, p = predictor.move(
-            (x, y, th, p), (track.vx[k], track.vy[k], track.wz[k]), track.t[k] - track.t[k - 1]
-        )
-    return x, y, th, p
-
-
-@settings(max_examples=40, deadline=None)
-@given(
-    st.integers(0, 10_000),
-    st.sampled_from([(NOISE, True), (PAPER_NOISE, False)]),
-    st.booleans(),
-    st.sampled_from([0.0, 300.0]),
-)
-def test_the_closed_form_equals_stepping_across_the_same_steps(
-    seed: int, noise_and_rule: tuple[ekf.ControlNoise, bool], heading_known: bool, start_x: float
-) -> None:
-    noise, midpoint = noise_and_rule
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.booleans())
+def test_the_state_at_any_time_is_the_anchor_moved_across_each_step_in_force(seed: int, heading_known: bool) -> None:
     rng = random.Random(seed)
-    track = _random_track(rng, 60, noise, midpoint=midpoint, start_x=start_x)
-    predictor = Predictor(noise, midpoint=midpoint)
-    predictor.heading_known = heading_known
-    b, j = sorted(rng.sample(range(len(track)), 2))
-    xt = 0.0 if not heading_known else rng.uniform(-0.01, 0.01)  # (the unknown-heading mode keeps none)
-    p = (0.04, 0.01, xt, 0.09, -xt, 0.2)
-    state = (rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-3, 3), p)
-    closed = track.across(b, j, state, heading_known=heading_known)
-    stepped = _stepwise(track, b, j, state, predictor)
-    assert math.isclose(closed[0], stepped[0], abs_tol=1e-9)
-    assert math.isclose(closed[1], stepped[1], abs_tol=1e-9)
-    assert abs(ekf.wrap_angle(closed[2] - stepped[2])) < 1e-9
-    scale = max(abs(v) for v in stepped[3])
-    assert all(abs(u - v) <= 1e-10 * scale for u, v in zip(closed[3], stepped[3], strict=True)), (closed, stepped)
+    track = _random_track(rng, 30)
+    predictor = Predictor(NOISE, Modes(heading_known=heading_known), midpoint=True)
+    start = rng.uniform(0.0, track.t[-1])
+    end = start + rng.choice((0.0, rng.uniform(0.0, 0.3), rng.uniform(0.0, track.t[-1])))  # within, across, past
+    end = rng.choice((end, next((t for t in track.t if t > start), end)))  # and exactly at a step's end
+    anchor = Anchor(
+        start, rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-3, 3), (0.04, 0.01, 0.0, 0.09, 0.0, 0.2), None
+    )
+    history = History(track, predictor, anchor, 1.0, keep_past=True)
+    held = (track.hx[-1], track.hy[-1], track.hw[-1])
+    got = history.state_at(anchor, end, lambda: held)
+    assert got == _piecewise(track, anchor.state, start, end, predictor)
+
+
+def test_the_odometry_pose_is_interpolated_between_steps_and_held_past_them() -> None:
+    track = OdometryTrack(midpoint=True)
+    track.start(1.0, (0.0, 0.0, 0.0))
+    track.append(2.0, (0.5, 0.0, 0.0), (0.5, 0.0, 0.0))
+    track.append(3.0, (0.0, 0.5, 0.0), (0.0, 0.0, 0.0))
+    assert track.pose_at(0.5) is None
+    assert track.pose_at(1.5) == pytest.approx((0.25, 0.0, 0.0))
+    assert track.pose_at(2.5) == pytest.approx((0.5, 0.25, 0.0))
+    assert track.pose_at(9.0) == pytest.approx((0.5, 0.5, 0.0))
+    assert track.dist[-1] == pytest.approx(1.0)
+    assert track.twist_at(2.5) == (0.0, 0.5, 0.0)
+    assert track.twist_at(9.0) is None
 
 
 def _fix_stream(seed: int) -> list[tuple[float, float, float, float]]:
@@ -141,45 +129,12 @@ def test_a_fix_arriving_after_a_later_measured_one_lands_in_its_place() -> None:
     assert all(math.isclose(u, v, abs_tol=1e-12) for u, v in zip(a.cov, b.cov, strict=True))
 
 
-def test_a_long_outage_keeps_the_daemons_history_short_and_the_same_estimate() -> None:
-    """Fed one sample at a time, the estimator trims its track; loaded at once it keeps all: the same outputs."""
-    rng = random.Random(4)
-    times = [0.01 * (i + 1) for i in range(30_000)]  # 5 minutes at 100 Hz
-    ticks: list[tuple[int, int, int, int]] = []
-    counts = [0, 0, 0, 0]
-    for _ in times:
-        counts = [c + d for c, d in zip(counts, (10, 12, 11, 9), strict=True)]
-        ticks.append((counts[0], counts[1], counts[2], counts[3]))
-    fixes = {int(k): (0.01 * k + 0.005, rng.gauss(0, 0.02), rng.gauss(0, 0.02)) for k in range(12, 2000, 12)}
-    config = dataclasses.replace(EkfConfig(), initial_sigma=(1.0, 1.0, 0.1))
-    daemon = Estimator(config, GEOMETRY, (0.0, 0.0), CPR)
-    replayed = ReplayEstimator(config, GEOMETRY, (0.0, 0.0), CPR)
-    assert replayed.load_wheels(np.array(times), np.array(ticks, dtype=np.int64))
-    longest = prev = 0
-    for i, (t, k) in enumerate(zip(times, ticks, strict=True)):
-        daemon.on_wheels(t, k)
-        if i in fixes:  # fixes for 20 s, then none: a long outage
-            arrival, fx, fy = fixes[i]
-            replayed.on_wheel_samples(times, ticks, prev, i + 1)
-            prev = i + 1
-            for est in (daemon, replayed):
-                est.on_fix(arrival, fx, fy, t - 0.05)
-        longest = max(longest, len(daemon._track))
-    replayed.on_wheel_samples(times, ticks, prev, len(times))
-    replayed.mark_samples(np.array([len(times) - 1], dtype=np.int64))
-    _, x, y, _th, cov = replayed.marked()
-    ours = daemon.position(times[-1])
-    assert ours is not None
-    assert longest < 1000  # 50 s of steps at most, not 5 minutes' 6000
-    assert math.isclose(ours[0], x[0], abs_tol=1e-6)
-    assert math.isclose(ours[1], y[0], abs_tol=1e-6)
-    assert np.allclose(ours[3], cov[0], rtol=1e-6, atol=0.0)
-
-
 @given(st.lists(st.floats(-1.0, 1.0, allow_nan=False), min_size=1, max_size=120))
 def test_the_noise_estimates_running_median_is_the_median_of_the_window(values: list[float]) -> None:
     gate = FixGate(
-        EkfConfig(), dict.fromkeys(("fixes_accepted", "fixes_rejected", "recoveries", "fixes_seeded"), 0), paper=False
+        EkfConfig(),
+        dict.fromkeys(("fixes_accepted", "fixes_rejected", "recoveries", "fixes_seeded"), 0),
+        Modes(heading_known=True),
     )
     for v in values:
         inn = ekf.Innovation(math.sqrt(abs(v)), 0.0, 2 * gate.r, 0.0, 2 * gate.r, 0.0, 0.0, 0.0)
@@ -188,20 +143,33 @@ def test_the_noise_estimates_running_median_is_the_median_of_the_window(values: 
         assert gate._ordered == window
 
 
-@pytest.mark.parametrize(("noise", "midpoint"), [(NOISE, True), (PAPER_NOISE, False)])
-def test_steps_added_one_at_a_time_equal_steps_added_together(noise: ekf.ControlNoise, midpoint: bool) -> None:
-    rng = random.Random(8)
-    t = np.cumsum([rng.uniform(0.01, 0.2) for _ in range(300)])
-    vx, vy, wz = (np.array([rng.uniform(-0.5, 0.5) for _ in range(300)]) for _ in range(3))
-    together, one_by_one = OdometryTrack(noise, midpoint=midpoint), OdometryTrack(noise, midpoint=midpoint)
-    for track in (together, one_by_one):
-        track.start(0.0, (0.0, 0.0, 0.0))
-    together.extend(StepTwists(t, vx, vy, wz, (vx, vy, wz)))
-    for k in range(len(t)):
-        u = (float(vx[k]), float(vy[k]), float(wz[k]))
-        one_by_one.append(float(t[k]), u, u)
-    for name in ("t", "ox", "oy", "oth", "dist", "hx"):
-        assert np.allclose(getattr(together, name), getattr(one_by_one, name), rtol=1e-12, atol=1e-12), name
-    assert np.allclose(np.array(together.sums), np.array(one_by_one.sums), rtol=1e-10, atol=1e-15)
-    whole, rebuilt = together.arrays(), one_by_one.arrays()
-    assert np.allclose(whole.sums, rebuilt.sums, rtol=1e-10, atol=1e-15)
+def _outage_run(config: EkfConfig) -> tuple[Estimator, int]:
+    """5 minutes of wheels at 100 Hz; fixes for the first 20 s, then none (a long outage); the longest track held."""
+    rng = random.Random(4)
+    est = Estimator(config, GEOMETRY, (0.0, 0.0), CPR)
+    counts = [0, 0, 0, 0]
+    longest = 0
+    for i in range(30_000):
+        t = 0.01 * (i + 1)
+        counts = [c + d for c, d in zip(counts, (10, 12, 11, 9), strict=True)]
+        est.on_wheels(t, (counts[0], counts[1], counts[2], counts[3]))
+        if i % 12 == 0 and i < 2000:
+            est.on_fix(t + 0.005, rng.gauss(0, 0.02), rng.gauss(0, 0.02), t - 0.05)
+        longest = max(longest, len(est._track))
+    return est, longest
+
+
+def test_a_long_outage_keeps_the_daemons_history_short_and_the_estimate_unchanged(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Fed one sample at a time, the estimator trims its track; an estimator that never trims agrees with it."""
+    config = dataclasses.replace(EkfConfig(), initial_sigma=(1.0, 1.0, 0.1))
+    daemon, longest = _outage_run(config)
+    monkeypatch.setattr(estimator, "TRIM_STEPS", 10**9)
+    untrimmed, held = _outage_run(config)
+    assert longest < 1000  # 50 s of steps at most, not 5 minutes' 6000
+    assert held > 5000
+    a, b = daemon.pose(), untrimmed.pose()
+    assert math.isclose(a.x, b.x, abs_tol=1e-9)
+    assert math.isclose(a.y, b.y, abs_tol=1e-9)
+    assert all(math.isclose(u, v, rel_tol=1e-9, abs_tol=1e-15) for u, v in zip(a.cov, b.cov, strict=True))

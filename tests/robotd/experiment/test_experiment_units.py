@@ -11,7 +11,7 @@ import pytest
 
 from robotd import plots
 from robotd.experiment import TARGET_MAX_M, TARGET_RMSE_M, Run, summarise
-from robotd.metrics import ErrorStats
+from robotd.metrics import ErrorStats, Trajectory
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -69,18 +69,18 @@ def test_target_misses_name_what_failed(ekf: ErrorStats | None, expected: list[s
     assert run(1, ekf).target_misses() == expected
 
 
-def square_truth(with_heading: bool) -> plots.Track:
+def square_truth(with_heading: bool) -> Trajectory:
     t = np.linspace(0.0, 40.0, 401)
     side = np.clip(t / 10.0, 0.0, 1.0) * 3.0
     heading = np.zeros_like(t) if with_heading else np.full_like(t, np.nan)
-    return plots.Track(t, side, np.zeros_like(t), heading)
+    return Trajectory(t, side, np.zeros_like(t), heading)
 
 
-def noisy(truth: plots.Track, sigma: float, seed: int) -> plots.Track:
+def noisy(truth: Trajectory, sigma: float, seed: int) -> Trajectory:
     rng = np.random.default_rng(seed)
     n = len(truth.t)
     theta = truth.theta + rng.normal(0.0, 0.02, n)
-    return plots.Track(truth.t, truth.x + rng.normal(0.0, sigma, n), truth.y + rng.normal(0.0, sigma, n), theta)
+    return Trajectory(truth.t, truth.x + rng.normal(0.0, sigma, n), truth.y + rng.normal(0.0, sigma, n), theta)
 
 
 @pytest.mark.parametrize("with_heading", [True, False])
@@ -89,7 +89,7 @@ def test_figures_render_as_png(tmp_path: Path, with_heading: bool) -> None:
     fixes = noisy(truth, 0.05, 1)
     methods = {
         "odometry": noisy(truth, 0.3, 2),
-        "ips": plots.Track(fixes.t, fixes.x, fixes.y, np.full_like(fixes.t, np.nan)),
+        "ips": Trajectory(fixes.t, fixes.x, fixes.y, np.full_like(fixes.t, np.nan)),
         "paper_ekf": noisy(truth, 0.5, 3),
         "ekf": noisy(truth, 0.02, 4),
     }
@@ -102,6 +102,6 @@ def test_figures_render_as_png(tmp_path: Path, with_heading: bool) -> None:
 
 def test_errors_are_measured_against_truth_at_the_estimates_times() -> None:
     truth = square_truth(with_heading=True)
-    shifted = plots.Track(np.array([5.0, 20.0]), np.array([1.5, 3.0]), np.array([0.4, -0.3]), np.array([0.1, -0.2]))
+    shifted = Trajectory(np.array([5.0, 20.0]), np.array([1.5, 3.0]), np.array([0.4, -0.3]), np.array([0.1, -0.2]))
     np.testing.assert_allclose(plots.position_error(shifted, truth), [0.4, 0.3])
     np.testing.assert_allclose(plots.heading_error_deg(shifted, truth), np.degrees([0.1, -0.2]))
