@@ -3,16 +3,19 @@
 Theory of operation. pigpiod keeps generating PWM after its client is gone, so an owner that is killed, stopped or
 hung would leave the wheels driving. The deadman lives where the owner's death cannot reach it: a script stored and
 run inside pigpiod (PROC, PROCR). The owner bumps the script's parameter p0 (PROCU) once per control period; the
-script reads p0 every `slice_ms`. Armed by the first bump, it counts `slices` reads in a row with p0 unchanged, then
+script reads p0 every `slice_ms`, noting pigpiod's tick (microseconds) at each read. Armed by the first bump, it
 writes every enable pin low, then every direction pin low (W also stops PWM; enables first, so the L298 never sees
-a direction input change under a live enable), counts the trip in p1 and waits, disarmed, for p0 to change again:
-an owner resumed after SIGSTOP arms it with its next bump. The pins go low between `timeout - slice` and
-`timeout + slice` after the last bump (`slices` x `slice_ms` <= timeout), plus pigpiod's scheduling.
+a direction input change under a live enable) at the first read that finds p0 unchanged for `timeout` since the read
+before its last change; then it counts the trip in p1 and waits, disarmed, for p0 to change again: an owner resumed
+after SIGSTOP arms it with its next bump. Timing from the tick, not by counting reads, keeps the reads' own delays
+from adding up: the pins go low between `timeout - slice` and `timeout + slice` after the last bump, plus one of
+pigpiod's scheduling delays.
 
 Parameters: p0 the heartbeat (the owner's), p1 the trips (the script's), p8 the mask of the motor pins and p9
 `SIGNATURE`. p8 and p9 mark a script as a robotd deadman guarding those pins: whoever takes the pins next removes a
 deadman left by a killed owner (`remove_deadmen`), which would otherwise stop the new owner's motors.
-Variables: v0 the last heartbeat seen, v1 the reads left before the trip.
+Variables: v0 the last heartbeat seen, v2 the tick of the read before it changed (the bump came later), v3 the tick
+of the latest read, v4 the tick of the read before.
 
 The bump never waits: `bump()` writes PROCU (and, every `status_every` bumps, PROCP) to the socket and returns;
 `watch()` reads the answers in order, reports new trips, and raises DeadmanLostError when pigpiod refuses a command,
@@ -35,6 +38,8 @@ HEARTBEAT, TRIPS, PIN_MASK, SIGNATURE_PARAM = 0, 1, 8, 9
 MAX_OUTSTANDING = 64
 """Answers allowed to be owed before bumps stop: a pigpiod that stops answering stops hearing the heartbeat."""
 MAX_MILS = 60_000
+MAX_TIMEOUT_MS = 1_000_000
+"""Far below the 35 minutes after which the difference of two 32-bit microsecond ticks turns negative."""
 
 
 class DeadmanLostError(ConnectionError):
@@ -68,17 +73,19 @@ def pin_mask(pins: Sequence[int]) -> int:
     return sum(1 << pin for pin in set(pins))
 
 
-def deadman_script(enable_pins: Sequence[int], direction_pins: Sequence[int], slice_ms: int, slices: int) -> str:
-    """The script's text: disarmed until p0 changes, then trips after `slices` reads of `slice_ms` without change."""
-    if not 1 <= slice_ms <= MAX_MILS or slices < 1:
-        raise ValueError(f"need 1 <= slice_ms <= {MAX_MILS} and slices >= 1, got {slice_ms} and {slices}")
+def deadman_script(enable_pins: Sequence[int], direction_pins: Sequence[int], slice_ms: int, timeout_ms: int) -> str:
+    """The script's text: disarmed until p0 changes, then trips once p0 has not changed for `timeout_ms`."""
+    if not 1 <= slice_ms <= MAX_MILS or not slice_ms <= timeout_ms <= MAX_TIMEOUT_MS:
+        raise ValueError(f"need 1 <= slice_ms <= {MAX_MILS} and slice_ms <= timeout_ms <= {MAX_TIMEOUT_MS}")
     pin_mask([*enable_pins, *direction_pins])
     stop = " ".join(f"w {pin} 0" for pin in [*enable_pins, *direction_pins])  # enables first: the bridge rule
+    read = f"lda v3 sta v4 mils {slice_ms} t sta v3 lda p0 cmp v0"  # the previous read's tick; sleep; tick; p0 - v0
     lines = (
-        "ld v0 p0",  # the heartbeat as run: nothing to guard until it changes
-        f"tag 0 mils {slice_ms} lda p0 cmp v0 jz 0",  # disarmed: wait for a new heartbeat
-        f"tag 1 sta v0 ld v1 {slices}",  # a new heartbeat (A holds it): remember it, count again
-        f"tag 2 mils {slice_ms} lda p0 cmp v0 jnz 1 dcr v1 jnz 2",  # armed: count reads without a change
+        "ld v0 p0 t sta v3",  # the heartbeat as run: nothing to guard until it changes
+        f"tag 0 {read} jz 0",  # disarmed: wait for a new heartbeat
+        "tag 1 sta v0 lda v4 sta v2",  # a new heartbeat (A holds it), bumped after the read before this one
+        f"tag 2 {read} jnz 1",  # armed: a newer heartbeat starts the wait again
+        f"lda v3 sub v2 cmp {timeout_ms * 1000} jm 2",  # microseconds since then (32-bit ticks wrap: so does sub)
         f"{stop} inr p1 jmp 0",  # tripped: motors off, count it, disarm
     )
     return "\n".join(lines)  # pigpio scripts have no comments: they live here
@@ -116,8 +123,8 @@ class PigpioDeadman:
         `timeout_s` plus one period of the last bump. Raises PigpiodUnavailableError or PigpioCommandError.
         """
         slice_ms = max(1, int(period_s * 1000.0))
-        slices = max(1, int(timeout_s * 1000.0) // slice_ms)
-        script = deadman_script(enable_pins, direction_pins, slice_ms, slices)
+        timeout_ms = max(slice_ms, round(timeout_s * 1000.0))
+        script = deadman_script(enable_pins, direction_pins, slice_ms, timeout_ms)
         params = [0] * 10
         params[PIN_MASK], params[SIGNATURE_PARAM] = pin_mask([*enable_pins, *direction_pins]), SIGNATURE
         link = await PigpioLink.connect(host, port, connect_timeout_s)

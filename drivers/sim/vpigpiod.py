@@ -133,7 +133,7 @@ class VirtualPigpiod:
         start_tick: int | None = None,
         hardware_revision: int = PI4B_4GB,
         send_buffer_limit: int = 4 << 20,
-        history_limit: int = 200_000,
+        history_limit: int = 50_000,
     ) -> None:
         self.host = host
         self._requested_port = port

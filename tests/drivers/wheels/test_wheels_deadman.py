@@ -88,7 +88,7 @@ async def until(condition: Callable[[], bool], timeout_s: float) -> float:
 
 
 def test_the_script_text_stops_enables_before_direction_pins() -> None:
-    text = deadman_script([12, 13], [16, 20, 21, 26], slice_ms=20, slices=25)
+    text = deadman_script([12, 13], [16, 20, 21, 26], slice_ms=20, timeout_ms=500)
     stop = text.split("\n")[-1]
     assert stop == "w 12 0 w 13 0 w 16 0 w 20 0 w 21 0 w 26 0 inr p1 jmp 0"
     with pytest.raises(ValueError, match="GPIO 0-31"):
@@ -108,7 +108,7 @@ async def test_the_pins_go_low_after_the_last_bump_enables_first(server: Virtual
         assert [write.gpio for write in writes] == PINS
         assert all(write.mode == 1 and write.level == 0 and write.duty == 0.0 for write in writes)
         # generous functional bounds; the figure itself is `robotd bench daemon`'s
-        assert TIMEOUT_S - 0.01 <= writes[0].t - last_bump <= TIMEOUT_S + 2.0
+        assert TIMEOUT_S / 2 <= writes[0].t - last_bump <= TIMEOUT_S + 2.0
         assert not trips
         await bump_for(deadman, 0.3)  # the owner is back: its next status read sees the trip
         await until(lambda: trips == [1], 2.0)
