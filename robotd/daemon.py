@@ -264,13 +264,16 @@ class Daemon:
             self._motors_lost.set()
 
     async def _connect_motors(self) -> None:
-        self.motors = await asyncio.to_thread(self._motors_factory)
-        self.motors.zero()
+        motors = await asyncio.to_thread(self._motors_factory)
+        motors.zero()
         try:
             await self.deadman.install()
         except BaseException:
-            self._close_motors()  # motors no deadman guards are not kept
+            with contextlib.suppress(Exception):
+                motors.close()  # motors no deadman guards are not kept
             raise
+        # published only now, with no await before the caller's next step: no command drives them before that
+        self.motors = motors
 
     async def _motor_supervisor(self) -> None:
         """Re-connect the motor outputs whenever they are lost."""
