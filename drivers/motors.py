@@ -4,7 +4,9 @@ Duty in [-1, 1] per wheel (FL, FR, RL, RR): the sign picks the direction inputs 
 magnitude is the enable pin's PWM duty, after the wheel's sign and the configured limit. Zero duty lets the motor
 coast (enable low, both inputs low). Every path out zeroes the motors: `GpiozeroMotors` starts at zero, `close()`
 and leaving its `with` block (normally or by an exception) zero it, and `stop_all_motors` does it from another
-process after a crash.
+process after a crash. Both leave the twelve pins outputs driven low (inputs would let the L298's inputs float), and
+both remove a deadman script a killed owner left guarding these pins (drivers.pigpio_deadman): it would stop the
+next owner's motors.
 
 Back-end seam: the daemon depends only on `MotorOutputs`; an lgpio back-end (Pi 5, Raspberry Pi OS 13) would be a
 second class with the same three methods.
@@ -19,6 +21,7 @@ from collections.abc import Iterator
 from types import FrameType, TracebackType
 from typing import Any, Protocol, Self
 
+from drivers.pigpio_deadman import remove_deadmen
 from drivers.pigpio_link import PigpiodUnavailableError, probe
 from robotd.config import WHEELS, MotorPins, MotorsConfig, PigpiodConfig
 
@@ -44,6 +47,12 @@ class MotorOutputs(Protocol):
 def wheel_pins(motors: MotorsConfig) -> list[MotorPins]:
     """The motors' pins in wheel order."""
     return [getattr(motors.wheels, wheel) for wheel in WHEELS]
+
+
+def enable_and_direction_pins(motors: MotorsConfig) -> tuple[list[int], list[int]]:
+    """The four enable pins, then the eight direction pins, in wheel order."""
+    pins = wheel_pins(motors)
+    return [p.enable for p in pins], [gpio for p in pins for gpio in (p.in1, p.in2)]
 
 
 def command_duty(duty: float, sign: int, limit: float) -> float:
@@ -97,7 +106,9 @@ class GpiozeroMotors:
         self._factory: Any = PiGPIOFactory(host=pigpiod.host, port=pigpiod.port)
         self._pi: Any = self._factory.connection
         self._channels: list[_Channel] = []
+        enables, directions = enable_and_direction_pins(motors)
         try:
+            remove_deadmen(self._pi, [*enables, *directions])  # before it can stop these motors
             for pins in wheel_pins(motors):
                 self._channels.append(_Channel(pins, motors.pwm_frequency_hz, self._factory))
         except BaseException:
@@ -151,8 +162,16 @@ class GpiozeroMotors:
                 channel.direction = 0
 
     def close(self) -> None:
-        """Zero the motors, release the pins and disconnect."""
+        """Zero the motors, leave every motor pin an output driven low, and disconnect."""
         self.zero()
+        enables, directions = enable_and_direction_pins(self._motors)
+        for gpio in [*enables, *directions]:  # enables first: the bridge rule
+            with contextlib.suppress(Exception):  # pigpiod gone: nothing is driven any more
+                self._pi.write(gpio, 0)
+        # gpiozero's close returns its pins to inputs, which would leave the L298's inputs floating; on a stopped
+        # connection it writes nothing, so stop it first and let gpiozero only forget its devices.
+        with contextlib.suppress(Exception):
+            self._pi.stop()
         # Each release on its own: with pigpiod gone every one fails, and one failure must not leave the rest
         # (and the factory) for gpiozero's finalisers to retry and report at exit.
         for channel in self._channels:
@@ -182,7 +201,8 @@ def stop_all_motors(motors: MotorsConfig, pigpiod: PigpiodConfig) -> None:
     """Drive every motor pin low through pigpiod, without the daemon (blocking; for systemd's ExecStopPost).
 
     This uses pigpio directly, not gpiozero: gpiozero returns its pins to inputs when it closes, which would leave
-    the L298 inputs floating after this process exits; pigpio's write leaves them outputs driven low.
+    the L298 inputs floating after this process exits; pigpio's write leaves them outputs driven low. A deadman
+    script left by the dead daemon is removed afterwards (it would only have zeroed them too).
     """
     import pigpio  # noqa: PLC0415 - only this path needs the raw client
 
@@ -191,16 +211,17 @@ def stop_all_motors(motors: MotorsConfig, pigpiod: PigpiodConfig) -> None:
     if not pi.connected:
         raise PigpiodUnavailableError(pigpiod.host, pigpiod.port, "pigpio client could not connect")
     try:
-        for pins in wheel_pins(motors):
-            for gpio in (pins.enable, pins.in1, pins.in2):
-                pi.write(gpio, 0)  # also stops PWM on the pin
+        enables, directions = enable_and_direction_pins(motors)
+        for gpio in [*enables, *directions]:  # enables first: the bridge rule
+            pi.write(gpio, 0)  # also stops PWM on the pin
+        remove_deadmen(pi, [*enables, *directions])
     finally:
         pi.stop()
 
 
 @contextlib.contextmanager
 def termination_as_exit() -> Iterator[None]:
-    """Within this block SIGTERM and SIGHUP raise SystemExit, so `with` blocks and `finally` clauses run.
+    """Within this block SIGTERM, SIGHUP and SIGQUIT raise SystemExit, so `with` blocks and `finally` clauses run.
 
     For blocking programs on the main thread (the daemon has its own asyncio signal handlers).
     """
@@ -208,7 +229,7 @@ def termination_as_exit() -> Iterator[None]:
     def exit_on_signal(signum: int, _frame: FrameType | None) -> None:
         raise SystemExit(128 + signum)
 
-    previous = {sig: signal.signal(sig, exit_on_signal) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    previous = {sig: signal.signal(sig, exit_on_signal) for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)}
     try:
         yield
     finally:

@@ -1,7 +1,8 @@
-"""A small asyncio client of pigpiod's socket: one command at a time, plus opening a notification socket.
+"""A small asyncio client of pigpiod's socket: commands answered one at a time or sent without waiting, and
+notification sockets.
 
-robotd's encoder source talks to pigpiod with this instead of the `pigpio` library, whose blocking calls and
-callback thread do not belong on the event loop.
+robotd's encoder source and motor deadman talk to pigpiod with this instead of the `pigpio` library, whose blocking
+calls and callback thread do not belong on the event loop.
 """
 
 from __future__ import annotations
@@ -9,8 +10,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
+from dataclasses import dataclass
 
-from drivers.pigpio_protocol import COMMAND, Cmd, Err, decode_result, encode_command
+from drivers.pigpio_protocol import COMMAND, EXTENDED_ANSWERS, Cmd, Err, decode_result, encode_command
 
 
 class PigpiodUnavailableError(ConnectionError):
@@ -46,8 +48,21 @@ async def _open(host: str, port: int, timeout_s: float) -> tuple[asyncio.StreamR
     return reader, writer
 
 
+@dataclass(frozen=True, slots=True)
+class Answer:
+    """pigpiod's answer to one command: the command it answers, its signed result, the data after it if any."""
+
+    cmd: int
+    result: int
+    data: bytes = b""
+
+
 class PigpioLink:
-    """A command socket to pigpiod; commands are serialised (each waits for its answer)."""
+    """A command socket to pigpiod.
+
+    Either one command at a time (`command`, `query`: each waits for its answer), or commands sent without waiting
+    (`post`) whose answers the owner reads in order (`read_answer`); not both at once on one link.
+    """
 
     def __init__(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, host: str, port: int, timeout_s: float
@@ -63,24 +78,56 @@ class PigpioLink:
         reader, writer = await _open(host, port, timeout_s)
         return cls(reader, writer, host, port, timeout_s)
 
-    async def command(self, cmd: int, p1: int = 0, p2: int = 0, *, unsigned: bool = False) -> int:
-        """Send one command and return its result; a negative result raises PigpioCommandError.
+    async def command(
+        self, cmd: int, p1: int = 0, p2: int = 0, *, extension: bytes = b"", unsigned: bool = False
+    ) -> int:
+        """Send one command (with its extension, if any) and return its result; a negative one raises
+        PigpioCommandError.
 
         `unsigned` reads the result as a 32-bit value instead (ticks and bank levels use all 32 bits). A pigpiod
         that does not answer in time raises TimeoutError (an OSError, like a reset connection).
         """
-        async with self._lock:
-            self._writer.write(encode_command(cmd, p1, p2))
-            try:
-                answer = await asyncio.wait_for(self._reader.readexactly(COMMAND.size), self.timeout_s)
-            except asyncio.IncompleteReadError as error:
-                raise ConnectionResetError("pigpiod closed the command socket") from error
+        answer = await self._exchange(cmd, p1, p2, extension)
         if unsigned:
-            return int(COMMAND.unpack(answer)[3])
-        result = decode_result(answer)
-        if result < 0:
-            raise PigpioCommandError(cmd, p1, p2, result)
-        return result
+            return answer.result & 0xFFFFFFFF
+        if answer.result < 0:
+            raise PigpioCommandError(cmd, p1, p2, answer.result)
+        return answer.result
+
+    async def query(self, cmd: int, p1: int = 0, p2: int = 0) -> bytes:
+        """Send a command whose answer carries data (PROCP) and return the data; errors as `command`."""
+        answer = await self._exchange(cmd, p1, p2, b"")
+        if answer.result < 0:
+            raise PigpioCommandError(cmd, p1, p2, answer.result)
+        return answer.data
+
+    async def _exchange(self, cmd: int, p1: int, p2: int, extension: bytes) -> Answer:
+        async with self._lock:
+            self._writer.write(encode_command(cmd, p1, p2, extension))
+            return await asyncio.wait_for(self.read_answer(), self.timeout_s)
+
+    def post(self, cmd: int, p1: int = 0, p2: int = 0, extension: bytes = b"") -> None:
+        """Send a command without waiting for its answer (never blocks: the socket buffers it)."""
+        self._writer.write(encode_command(cmd, p1, p2, extension))
+
+    async def read_answer(self) -> Answer:
+        """The next answer on the socket, with its data; a closed socket raises ConnectionResetError."""
+        try:
+            header = await self._reader.readexactly(COMMAND.size)
+            cmd = int(COMMAND.unpack(header)[0])
+            result = decode_result(header)
+            data = await self._reader.readexactly(result) if cmd in EXTENDED_ANSWERS and result > 0 else b""
+        except asyncio.IncompleteReadError as error:
+            raise ConnectionResetError("pigpiod closed the command socket") from error
+        return Answer(cmd, result, data)
+
+    def is_closing(self) -> bool:
+        """Whether the socket is closed or being closed."""
+        return self._writer.is_closing()
+
+    def abort(self) -> None:
+        """Close the socket now, dropping anything not yet sent (no wait)."""
+        self._writer.transport.abort()
 
     async def close(self) -> None:
         """Close the socket."""

@@ -6,6 +6,7 @@ Theory of operation (facts from pigpio's socket interface documentation and its 
 - A command is 16 bytes, four little-endian uint32: cmd, p1, p2, p3. When p3 is not zero, p3 more bytes follow
   (the "extension", e.g. the duty cycle of a hardware PWM command).
 - The answer is 16 bytes: cmd, p1, p2 echoed, then the result as a uint32 holding a signed int (< 0 is an error).
+- Answers that carry data (PROCP's script status) say how many bytes follow in the result; they follow at once.
 - A socket that sends NOIB (99) becomes a notification socket: after the answer (the handle), pigpiod writes 12-byte
   reports `<HHII` seq, flags, tick, level on it. seq counts reports per handle (16 bits, wrapping); flags 0 means a
   level change (level = all of bank 1, GPIO 0-31, after the change, tick = its time in microseconds, 32 bits).
@@ -60,11 +61,19 @@ class Cmd(enum.IntEnum):
     PFG = 23
     PRRG = 24
     PIGPV = 26
+    PROC = 38
+    PROCD = 39
+    PROCR = 40
+    PROCS = 41
+    PROCP = 45
+    MICS = 46
+    MILS = 47
     GDC = 83
     GPW = 84
     FG = 97
     FN = 98
     NOIB = 99
+    PROCU = 117  # pigpio numbered it after the others: 52 is WVTXR
 
 
 class Err(enum.IntEnum):
@@ -80,6 +89,17 @@ class Err(enum.IntEnum):
     NO_HANDLE = -24
     BAD_HANDLE = -25
     NOT_PERMITTED = -41
+    BAD_SCRIPT = -47
+    BAD_SCRIPT_ID = -48
+    DUP_TAG = -53
+    TOO_MANY_TAGS = -54
+    BAD_SCRIPT_CMD = -55
+    NO_SCRIPT_ROOM = -57
+    TOO_MANY_PARAM = -61
+    NOT_HALTED = -62
+    BAD_TAG = -63
+    BAD_MICS_DELAY = -64
+    BAD_MILS_DELAY = -65
     UNKNOWN_COMMAND = -88
     NOT_PWM_GPIO = -92
     BAD_FILTER = -125
@@ -105,6 +125,23 @@ class Pull(enum.IntEnum):
     DOWN = 1
     UP = 2
 
+
+class ScriptState(enum.IntEnum):
+    """Run status of a stored script, as PROCP answers it."""
+
+    INITING = 0
+    HALTED = 1
+    RUNNING = 2
+    WAITING = 3
+    FAILED = 4
+
+
+MAX_SCRIPTS = 32
+MAX_SCRIPT_PARAMS = 10
+SCRIPT_STATUS = struct.Struct("<11i")
+"""PROCP's data: the run status, then parameters p0..p9 (signed 32-bit)."""
+EXTENDED_ANSWERS = frozenset({Cmd.PROCP})
+"""Commands whose answer is followed by as many data bytes as its (non-negative) result says."""
 
 NTFY_FLAGS_EVENT = 1 << 7
 NTFY_FLAGS_ALIVE = 1 << 6
@@ -159,6 +196,16 @@ def encode_answer(command: Command, result: int) -> bytes:
 def encode_command(cmd: int, p1: int = 0, p2: int = 0, extension: bytes = b"") -> bytes:
     """A command as a client sends it."""
     return COMMAND.pack(cmd, p1 & 0xFFFFFFFF, p2 & 0xFFFFFFFF, len(extension)) + extension
+
+
+def encode_params(params: tuple[int, ...] | list[int]) -> bytes:
+    """Script parameters as PROCR and PROCU send them: one 32-bit word each (negative values wrap)."""
+    return struct.pack(f"<{len(params)}I", *(value & 0xFFFFFFFF for value in params))
+
+
+def decode_params(extension: bytes) -> tuple[int, ...]:
+    """Script parameters from a PROCR or PROCU extension, as the signed values a script sees."""
+    return struct.unpack(f"<{len(extension) // 4}i", extension[: len(extension) // 4 * 4])
 
 
 def decode_result(answer: bytes) -> int:

@@ -131,6 +131,12 @@ class MotorsConfig:
 
     pwm_frequency_hz: int = setting(1000, "PWM frequency of the enable pins.", in_range(10, 40_000))
     duty_limit: float = setting(1.0, "Largest duty magnitude ever sent to a motor, in (0, 1].", in_range(0.01, 1.0))
+    deadman_script: bool = setting(
+        True,
+        "Run a deadman script inside pigpiod that drives every motor pin low when robotd stops refreshing it for "
+        "teleop.deadman_timeout_s (killed, stopped or hung): the wheels stop within that time plus one control "
+        "period, whatever happened to robotd.",
+    )
     wheels: MotorWheels = section(MotorWheels, "Pins and direction per wheel.")
 
 

@@ -8,11 +8,15 @@ woken at once, so a command reaches the motors without waiting for the next peri
 `MotionController` at `control.rate_hz` and writes the duties; the pose task publishes at `pose_socket.rate_hz` and
 a status at 1 Hz; the health task pings systemd's watchdog only while the control loop and the filter keep ticking.
 
-Exit paths: SIGTERM or SIGINT ends the TaskGroup and `run()` returns 0; an exception in any task cancels the
-others and `run()` returns 1 (systemd restarts the service): an operational one (a device or pigpiod gone) is logged
-in one line, any other (a bug) at ERROR with its traceback. Either way the motors are zeroed before anything else
-is torn down. A pigpiod that goes away is re-connected with backoff; the motors are driven again only after a
-command that arrived after the reconnection.
+Exit paths: SIGTERM, SIGINT, SIGHUP or SIGQUIT ends the TaskGroup and `run()` returns 0; an exception in any task
+cancels the others and `run()` returns 1 (systemd restarts the service). Either way the motors are zeroed before
+anything else is torn down, and the deadman script is removed from pigpiod. A failure that is operational (a device
+or pigpiod gone) is logged in one line, any other (a bug) at ERROR with its traceback. The deadman
+(drivers.pigpio_deadman) covers the ways out no handler sees: SIGKILL, SIGSTOP, a hung loop. Installed in pigpiod
+with the motors, bumped by every control period, it stops the motors `teleop.deadman_timeout_s` after the last bump;
+when it did, the daemon writes every motor pin again and drives only after a fresh command. A pigpiod that goes away
+(or a deadman that is lost) is re-connected with backoff, motors and deadman together; the motors are driven again
+only after a command that arrived after the reconnection.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import logging
 import math
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -35,12 +39,14 @@ from drivers.encoders import EncoderSource, PigpioEncoders, WheelTicks
 from drivers.marvelmind.events import Event as MarvelmindEvent
 from drivers.marvelmind.events import FixUnavailable, Position
 from drivers.marvelmind.reader import MarvelmindReader
-from drivers.motors import GpiozeroMotors, MotorOutputs
+from drivers.motors import GpiozeroMotors, MotorOutputs, enable_and_direction_pins
+from drivers.pigpio_deadman import Deadman, PigpioDeadman
 from drivers.pigpio_link import PigpioCommandError
 from drivers.pigpio_protocol import ProtocolError
 from robotd import logfile, posesock
 from robotd.config import RobotdConfig
 from robotd.control import MotionController, StallFault
+from robotd.deadman_keeper import DeadmanFactory, DeadmanKeeper
 from robotd.estimator import Estimator
 from robotd.kinematics import Geometry, Twist
 from robotd.periodstats import PeriodStats
@@ -59,10 +65,11 @@ UNKNOWN_SPEEDS = (math.nan, math.nan, math.nan, math.nan)
 # What the world can do to a running daemon: a device, a socket or pigpiod gone, a command refused. Logged in one line;
 # anything else is a bug, logged with its traceback.
 OPERATIONAL_ERRORS: tuple[type[BaseException], ...] = (OSError, PigpioCommandError, ProtocolError, pigpio.error)
+SHUTDOWN_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP, signal.SIGQUIT)
 
 
 class _Shutdown(Exception):  # noqa: N818 - a signal, not an error
-    """Raised inside the TaskGroup to end it after SIGTERM or SIGINT."""
+    """Raised inside the TaskGroup to end it after one of SHUTDOWN_SIGNALS."""
 
 
 @dataclass(slots=True)
@@ -96,6 +103,7 @@ class Daemon:
         clock: Callable[[], float] = time.monotonic,
         encoders: EncoderSource | None = None,
         motors_factory: MotorsFactory | None = None,
+        deadman_factory: DeadmanFactory | None = None,
     ) -> None:
         self.config = config
         self.clock = clock
@@ -112,6 +120,15 @@ class Daemon:
         self.encoders = encoders if encoders is not None else PigpioEncoders(config.encoders, config.pigpiod, clock)
         self._motors_factory = motors_factory or (lambda: GpiozeroMotors(config.motors, config.pigpiod))
         self.motors: MotorOutputs | None = None
+        # pigpiod's deadman guards the real motors; injected motors (tests) get the deadman injected with them, if any
+        real_motors = motors_factory is None and config.motors.deadman_script
+        self.deadman = DeadmanKeeper(
+            deadman_factory or (self._pigpio_deadman if real_motors else None),
+            on_trip=self._on_deadman_trip,
+            on_lost=self._on_deadman_lost,
+            uninstall_timeout_s=config.pigpiod.connect_timeout_s,
+        )
+        self._shutdown_signal = "?"
         self.marvelmind = MarvelmindReader(config.marvelmind, self._on_marvelmind, clock)
         self.teleop_receiver = receiver_from_config(config.teleop)
         self.notifier = Notifier()
@@ -183,11 +200,11 @@ class Daemon:
     # --- tasks --------------------------------------------------------------------------------------------------
 
     async def run(self) -> int:
-        """Run until SIGTERM/SIGINT (returns 0) or a failure (returns 1); the motors are zeroed on every way out."""
+        """Run until a shutdown signal (returns 0) or a failure (returns 1); the motors are zeroed on every way out."""
         loop = asyncio.get_running_loop()
         stop = asyncio.Event()
-        for signum in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(signum, stop.set)
+        for signum in SHUTDOWN_SIGNALS:
+            loop.add_signal_handler(signum, self._on_shutdown_signal, stop, signum)
         status = 1
         transport: TeleopSocket | None = None
         if self._recorder is not None:
@@ -208,6 +225,7 @@ class Daemon:
                 tasks.create_task(self._pose_loop(), name="pose")
                 tasks.create_task(self._health_loop(), name="health")
                 tasks.create_task(self._motor_supervisor(), name="motors")
+                tasks.create_task(self.deadman.follow(), name="deadman")
                 tasks.create_task(self._until(stop), name="signals")
                 self.notifier.ready(status="running")
                 log.info("robotd running: teleop udp %s:%d, pose socket %s", self.config.teleop.bind,
@@ -218,8 +236,9 @@ class Daemon:
             self._log_failures(group)
         finally:
             self._zero_motors()  # first, whatever happened
+            await self.deadman.uninstall()
             self.notifier.stopping("stopping")
-            for signum in (signal.SIGTERM, signal.SIGINT):
+            for signum in SHUTDOWN_SIGNALS:
                 loop.remove_signal_handler(signum)
             if transport is not None:
                 transport.close()
@@ -241,10 +260,13 @@ class Daemon:
                     "robotd stopping after an unexpected error: %s: %s", type(error).__name__, error, exc_info=error
                 )
 
-    @staticmethod
-    async def _until(stop: asyncio.Event) -> None:
+    def _on_shutdown_signal(self, stop: asyncio.Event, signum: int) -> None:
+        self._shutdown_signal = signal.Signals(signum).name
+        stop.set()
+
+    async def _until(self, stop: asyncio.Event) -> None:
         await stop.wait()
-        log.info("robotd stopping on signal")
+        log.info("robotd stopping on signal %s", self._shutdown_signal)
         raise _Shutdown
 
     async def _control_loop(self) -> None:
@@ -255,6 +277,7 @@ class Daemon:
             now = self.clock()
             self.control_periods.tick(now)
             self._control_step(now)
+            self.deadman.bump()  # from here, not from a task of its own: a loop that stops stepping stops bumping
             next_tick += period
             if next_tick < now:  # the loop stalled: restart the schedule rather than bursting
                 next_tick = now + period
@@ -280,8 +303,16 @@ class Daemon:
             self._motors_lost.set()
 
     async def _connect_motors(self) -> None:
-        self.motors = await asyncio.to_thread(self._motors_factory)
-        self.motors.zero()
+        motors = await asyncio.to_thread(self._motors_factory)
+        motors.zero()
+        try:
+            await self.deadman.install()
+        except BaseException:
+            with contextlib.suppress(Exception):
+                motors.close()  # motors no deadman guards are not kept
+            raise
+        # published only now, with no await before the caller's next step: no command drives them before that
+        self.motors = motors
 
     async def _motor_supervisor(self) -> None:
         """Re-connect the motor outputs whenever they are lost."""
@@ -312,10 +343,37 @@ class Daemon:
                 log.error("could not zero the motors: %s", error)
 
     def _close_motors(self) -> None:
+        self.deadman.drop()
         motors, self.motors = self.motors, None
         if motors is not None:
             with contextlib.suppress(Exception):
                 motors.close()
+
+    # --- the deadman in pigpiod -----------------------------------------------------------------------------------
+
+    def _pigpio_deadman(self) -> Awaitable[Deadman]:
+        pigpiod, period = self.config.pigpiod, self.controller.period_s
+        enables, directions = enable_and_direction_pins(self.config.motors)
+        # at least two periods: a timeout the control loop's own jitter could reach would trip while robotd runs
+        timeout = max(self.config.teleop.deadman_timeout_s, 2.0 * period)
+        host, port = pigpiod.host, pigpiod.port
+        return PigpioDeadman.install(
+            host, port, pigpiod.connect_timeout_s, enables, directions, timeout_s=timeout, period_s=period
+        )
+
+    def _on_deadman_lost(self, error: OSError) -> None:
+        self._counters["motor_failures"] += 1
+        log.warning("pigpiod deadman lost (%s): reconnecting to pigpiod", error)
+        self._close_motors()
+        self._motors_lost.set()
+
+    def _on_deadman_trip(self, trips: int) -> None:
+        log.warning(
+            "the pigpiod deadman stopped the motors (robotd was stalled; %d time(s) so far): waiting for a fresh "
+            "command", trips
+        )  # fmt: skip
+        self._zero_motors()  # the pins were written behind the motor outputs' back: write them all again
+        self._motors_ready_after = self.clock()
 
     async def _pose_loop(self) -> None:
         period = 1.0 / self.config.pose_socket.rate_hz

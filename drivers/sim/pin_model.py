@@ -3,7 +3,8 @@
 Pure state and rules, no sockets, not thread-safe (the virtual pigpiod holds a lock around it). Each rule is the
 documented behaviour of pigpio's C library: writing a level makes a pin an output and stops its PWM; PWM duty is an
 integer in [0, range]; a range change rescales an active duty; the PWM frequency snaps to the nearest one pigpio
-offers at its default 5 us sample rate, and the "real range" is 200000 / frequency.
+offers at its default 5 us sample rate, and the "real range" is 200000 / frequency. `written_gpios` says which
+GPIOs a command writes, so the server can keep a history of every write (`PinWrite`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,20 @@ PWM_FREQUENCIES = (8000, 4000, 2000, 1600, 1000, 800, 500, 400, 320, 250, 200, 1
 """The PWM frequencies pigpio offers at its default 5 us sample rate."""
 DEFAULT_PWM_FREQUENCY = 800
 DEFAULT_PWM_RANGE = 255
+
+
+@dataclass(frozen=True, slots=True)
+class PinWrite:
+    """One GPIO as a write command left it: when (monotonic s), who (socket or script), what, and the pin after."""
+
+    t: float
+    source: str
+    command: str
+    gpio: int
+    mode: int
+    level: int
+    duty: float
+    """PWM duty / range of an active PWM, else the level of an output, 0 for an input (as `pwm_fraction`)."""
 
 
 @dataclass(slots=True)
@@ -67,6 +82,28 @@ class PinBank:
         if pwm.active:
             return pwm.duty / pwm.range
         return float(self.level(gpio)) if self.modes[gpio] == Mode.OUTPUT else 0.0
+
+    def written_gpios(self, command: Command) -> list[int]:
+        """The GPIOs a command would write (mode, pull, level, PWM duty or range); empty for a read or a bad GPIO."""
+        cmd, gpio = command.cmd, command.p1
+        if cmd in (Cmd.MODES, Cmd.PUD, Cmd.WRITE):
+            return [gpio] if gpio < GPIO_COUNT else []
+        if cmd in (Cmd.PWM, Cmd.PRS):
+            return [gpio] if gpio < USER_GPIOS else []
+        if cmd in (Cmd.BC1, Cmd.BS1, Cmd.BC2, Cmd.BS2):
+            shift = 32 if cmd in (Cmd.BC2, Cmd.BS2) else 0
+            end = GPIO_COUNT if shift else USER_GPIOS
+            # only outputs take a bank write (see _bank_write)
+            return [g for g in range(shift, end) if command.p1 >> (g - shift) & 1 and self.modes[g] == Mode.OUTPUT]
+        return []
+
+    def write_record(self, gpio: int, t: float, source: str, command: str) -> PinWrite:
+        """A GPIO's state now, as a history entry."""
+        if gpio < USER_GPIOS:
+            duty = self.pwm_fraction(gpio)
+        else:
+            duty = float(self.level(gpio)) if self.modes[gpio] == Mode.OUTPUT else 0.0
+        return PinWrite(t, source, command, gpio, int(self.modes[gpio]), self.level(gpio), duty)
 
     def execute(self, command: Command) -> int:
         """Carry out a pin command; returns pigpio's result (negative = error)."""

@@ -15,22 +15,29 @@ Virtual time: `tick()` is the monotonic clock in microseconds, 32 bits, wrapping
 the first tick is `start_tick` (tests start near 2^32 to cross the wrap). The simulator stamps the edges it drives
 with ticks of its own choosing, normally close to `tick()`; reports carry those ticks (plus the glitch delay).
 
+Scripts (PROC, PROCR, PROCU, PROCP, PROCS, PROCD) run on the server's loop in real time: drivers.sim.script_runner
+says how, drivers.sim.script_language which instructions are modelled. A command that must wait (PROCD while its
+script finishes a delay) holds back the answers to the commands after it on its socket, as pigpiod's socket thread
+does. Every write to a pin (mode, pull, level, PWM duty or range, bank writes), from a socket or a script, is kept
+in a bounded history with its time and source (`pin_history`), for tests of write sequences.
+
 Not modelled: pigpio's 5 us sampling (edges closer than 5 us are all reported, none merged or missed); PWM and servo
 waveforms (a PWM pin reads 0, or 1 at full duty, and emits no edges); watchdogs, events, alive keep-alives, waves,
-scripts, I2C, SPI, serial, files and shell (they answer PI_UNKNOWN_COMMAND); pipe notifications (NO answers
-PI_NO_HANDLE: use NOIB); bank 2 inputs (GPIO 32-53 are never driven). The glitch filter treats the last change of
-each `drive_levels` batch as steady. Reports are lost only on purpose (`lose_reports`) or when a consumer leaves
-more than `send_buffer_limit` bytes unread, and then their sequence numbers are skipped as pigpiod skips them.
+I2C, SPI, serial, files, shell, and MILS/MICS sent over a socket (they answer PI_UNKNOWN_COMMAND); pipe
+notifications (NO answers PI_NO_HANDLE: use NOIB); bank 2 inputs (GPIO 32-53 are never driven). The glitch filter
+treats the last change of each `drive_levels` batch as steady. Reports are lost only on purpose (`lose_reports`) or
+when a consumer leaves more than `send_buffer_limit` bytes unread, and then their sequence numbers are skipped as
+pigpiod skips them (drivers.sim.notify_handles).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Self
 
@@ -44,27 +51,18 @@ from drivers.pigpio_protocol import (
     Err,
     ProtocolError,
     encode_answer,
-    encode_reports,
 )
-from drivers.sim.pin_model import BANK1, USER_GPIOS, PinBank, glitch_filter
+from drivers.sim.notify_handles import NotifyHandles
+from drivers.sim.pin_model import BANK1, USER_GPIOS, PinBank, PinWrite, glitch_filter
+from drivers.sim.script_runner import ScriptHost
 
 PI4B_4GB = 0xC03111
 """Hardware revision of a Raspberry Pi 4 Model B, 4 GB, as HWVER answers it."""
 PIGPIO_VERSION = 79
-MAX_HANDLES = 32
 U32 = npt.NDArray[np.uint32]
-
-
-@dataclass(slots=True)
-class _Notifier:
-    """One notification handle opened with NOIB on a socket."""
-
-    transport: asyncio.Transport
-    mask: int = 0
-    paused: bool = True
-    seq: int = 0
-    to_lose: int = 0
-    pending: deque[bytes] = field(default_factory=deque)
+Reply = int | tuple[int, bytes] | asyncio.Future[int]
+"""A command's result; with the data that follows the answer; or a result still to come."""
+_SCRIPT_COMMANDS = frozenset({Cmd.PROC, Cmd.PROCR, Cmd.PROCU, Cmd.PROCP, Cmd.PROCS, Cmd.PROCD})
 
 
 class _Connection(asyncio.Protocol):
@@ -73,6 +71,8 @@ class _Connection(asyncio.Protocol):
     def __init__(self, server: VirtualPigpiod) -> None:
         self._server = server
         self._decoder = CommandDecoder()
+        self._queue: deque[Command] = deque()
+        self._waiting = False
         self.transport: asyncio.Transport | None = None
         self.handle: int | None = None
 
@@ -88,11 +88,33 @@ class _Connection(asyncio.Protocol):
         except ProtocolError:
             self.transport.abort()  # a corrupt stream cannot be resynchronised
             return
-        for command in commands:
-            result = self._server._execute(command, self)
-            # pigpio writes only reports on a notification socket once its handle is answered.
-            if self.handle is None or command.cmd == Cmd.NOIB:
-                self.transport.write(encode_answer(command, result))
+        self._queue.extend(commands)
+        self._serve()
+
+    def _serve(self) -> None:
+        """Answer queued commands in order; one whose result is still to come holds back those after it."""
+        while self._queue and not self._waiting:
+            command = self._queue.popleft()
+            reply = self._server._execute(command, self)
+            if isinstance(reply, asyncio.Future):
+                self._waiting = True
+                reply.add_done_callback(functools.partial(self._resume, command))
+                return
+            self._answer(command, reply)
+
+    def _resume(self, command: Command, done: asyncio.Future[int]) -> None:
+        self._waiting = False
+        if done.cancelled() or self.transport is None or self.transport.is_closing():
+            return
+        self._answer(command, done.result())
+        self._serve()
+
+    def _answer(self, command: Command, reply: int | tuple[int, bytes]) -> None:
+        assert self.transport is not None
+        result, data = reply if isinstance(reply, tuple) else (reply, b"")
+        # pigpio writes only reports on a notification socket once its handle is answered.
+        if self.handle is None or command.cmd == Cmd.NOIB:
+            self.transport.write(encode_answer(command, result) + data)
 
     def connection_lost(self, _exc: Exception | None) -> None:
         self._server._connections.discard(self)
@@ -111,25 +133,23 @@ class VirtualPigpiod:
         start_tick: int | None = None,
         hardware_revision: int = PI4B_4GB,
         send_buffer_limit: int = 4 << 20,
+        history_limit: int = 50_000,
     ) -> None:
         self.host = host
         self._requested_port = port
         self.hardware_revision = hardware_revision
-        self.send_buffer_limit = send_buffer_limit
         now_us = time.monotonic_ns() // 1000
         self._tick_offset = 0 if start_tick is None else (start_tick - now_us)
         self._lock = threading.Lock()
         self._pins = PinBank()
-        self._notifiers: dict[int, _Notifier] = {}
-        self._last_report_tick: int | None = None
-        self._flush_scheduled = False
+        self._notify = NotifyHandles(send_buffer_limit)
         self._connections: set[_Connection] = set()
+        self._scripts = ScriptHost(self._script_command)
+        self._history: deque[PinWrite] = deque(maxlen=history_limit)
         self._server: asyncio.Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self.port = 0
-        self.reports_sent = 0
-        self.reports_lost = 0
 
     # --- lifecycle ----------------------------------------------------------------------------------------------
 
@@ -149,6 +169,7 @@ class VirtualPigpiod:
             for connection in list(self._connections):
                 if connection.transport is not None:
                     connection.transport.abort()
+            await self._scripts.aclose()
             await self._server.wait_closed()
             self._server = None
 
@@ -246,11 +267,20 @@ class VirtualPigpiod:
         bits = np.asarray(levels, dtype=np.uint32) << np.uint32(gpio)
         self.drive_levels(ticks, bits, 1 << gpio)
 
+    @property
+    def reports_sent(self) -> int:
+        """Notification reports written to sockets so far."""
+        return self._notify.reports_sent
+
+    @property
+    def reports_lost(self) -> int:
+        """Notification reports lost on purpose or dropped for a slow reader so far."""
+        return self._notify.reports_lost
+
     def lose_reports(self, count: int) -> None:
         """Drop the next `count` reports of every notification handle, skipping their sequence numbers."""
         with self._lock:
-            for notifier in self._notifiers.values():
-                notifier.to_lose += count
+            self._notify.lose(count)
 
     def level(self, gpio: int) -> int:
         """Level of a GPIO (0 or 1), as READ answers it."""
@@ -282,15 +312,27 @@ class VirtualPigpiod:
         with self._lock:
             return self._pins.glitch_us[gpio]
 
+    def pin_history(self, gpios: set[int] | None = None) -> list[PinWrite]:
+        """The writes kept so far (oldest first; the oldest are dropped beyond `history_limit`), of some GPIOs."""
+        with self._lock:
+            return [write for write in self._history if gpios is None or write.gpio in gpios]
+
+    def clear_pin_history(self) -> None:
+        """Forget the writes kept so far."""
+        with self._lock:
+            self._history.clear()
+
     def notify_handles(self) -> dict[int, int]:
         """Open notification handles and the bank-1 mask each monitors (0 while paused)."""
         with self._lock:
-            return {handle: 0 if n.paused else n.mask for handle, n in self._notifiers.items()}
+            return self._notify.monitored()
 
     # --- commands -----------------------------------------------------------------------------------------------
 
-    def _execute(self, command: Command, connection: _Connection) -> int:
+    def _execute(self, command: Command, connection: _Connection) -> Reply:
         """Carry out one command from a socket (on the loop thread)."""
+        if command.cmd in _SCRIPT_COMMANDS:
+            return self._script_table_command(command)
         with self._lock:
             match command.cmd:
                 case Cmd.TICK:
@@ -304,87 +346,67 @@ class VirtualPigpiod:
                 case Cmd.NO:
                     return Err.NO_HANDLE
                 case Cmd.NB | Cmd.NP | Cmd.NC:
-                    return self._notify_command(command)
-            before = self._pins.bank1
-            result = self._pins.execute(command)
-            if self._pins.bank1 != before:  # a write or a pull change: report it like any edge
-                tick = np.array([self.tick()], dtype=np.uint32)
-                self._report(tick, np.array([self._pins.bank1], dtype=np.uint32), before)
-            return result
+                    return self._notify.command(command)
+            return self._pin_command(command, "socket")
+
+    def _script_table_command(self, command: Command) -> Reply:
+        scripts, script_id = self._scripts, command.p1
+        match command.cmd:
+            case Cmd.PROC:
+                return scripts.store(command.extension)
+            case Cmd.PROCR:
+                return scripts.run(script_id, command.extension)
+            case Cmd.PROCU:
+                return scripts.update(script_id, command.extension)
+            case Cmd.PROCP:
+                return scripts.status(script_id)
+            case Cmd.PROCS:
+                return scripts.stop(script_id)
+        return scripts.delete(script_id)
+
+    def _script_command(self, command: Command, source: str) -> int:
+        """A socket command run by a script."""
+        with self._lock:
+            match command.cmd:
+                case Cmd.TICK:
+                    return self.tick()
+                case Cmd.HWVER:
+                    return self.hardware_revision
+                case Cmd.PIGPV:
+                    return PIGPIO_VERSION
+            return self._pin_command(command, source)
+
+    def _pin_command(self, command: Command, source: str) -> int:
+        """Run a pin command, keep its writes in the history and report level changes (lock held)."""
+        before = self._pins.bank1
+        written = self._pins.written_gpios(command)
+        result = self._pins.execute(command)
+        if result >= 0 and written:
+            now, name = time.monotonic(), Cmd(command.cmd).name
+            self._history.extend(self._pins.write_record(gpio, now, source, name) for gpio in written)
+        if self._pins.bank1 != before:  # a write or a pull change: report it like any edge
+            tick = np.array([self.tick()], dtype=np.uint32)
+            self._report(tick, np.array([self._pins.bank1], dtype=np.uint32), before)
+        return result
 
     def _open_handle(self, connection: _Connection) -> int:
-        free = next((h for h in range(MAX_HANDLES) if h not in self._notifiers), None)
-        if free is None or connection.transport is None:
+        if connection.transport is None:
             return Err.NO_HANDLE
-        self._notifiers[free] = _Notifier(connection.transport)
-        connection.handle = free
-        return free
-
-    def _notify_command(self, command: Command) -> int:
-        notifier = self._notifiers.get(command.p1)
-        if notifier is None:
-            return Err.BAD_HANDLE
-        if command.cmd == Cmd.NB:
-            notifier.mask, notifier.paused = command.p2, False
-        elif command.cmd == Cmd.NP:
-            notifier.paused = True
-        else:
-            del self._notifiers[command.p1]
-            notifier.transport.close()  # pigpiod closes a NOIB socket with its handle
-        return 0
+        handle = self._notify.open(connection.transport)
+        if handle >= 0:
+            connection.handle = handle
+        return handle
 
     def _close_handle(self, handle: int) -> None:
         with self._lock:
-            self._notifiers.pop(handle, None)
-
-    # --- reports ------------------------------------------------------------------------------------------------
+            self._notify.close(handle)
 
     def _report(self, ticks: U32, words: U32, previous: int) -> None:
-        """Queue the reports of bank-1 changes for every handle monitoring a changed bit (lock held)."""
-        if not len(ticks):
-            return
-        if self._last_report_tick is not None:
-            # Glitch-delayed stamps may fall before the last report sent: hold them at it, keeping ticks ordered.
-            since = (ticks - np.uint32(self._last_report_tick)).view(np.int32)
-            ticks = (np.maximum.accumulate(np.maximum(since, 0)).astype(np.uint32) + self._last_report_tick).astype(
-                np.uint32
-            )
-        self._last_report_tick = int(ticks[-1])
-        changed = words ^ np.concatenate((np.array([previous], dtype=np.uint32), words[:-1]))
-        for notifier in self._notifiers.values():
-            if notifier.paused or not notifier.mask:
-                continue
-            selected = np.flatnonzero(changed & np.uint32(notifier.mask))
-            count = len(selected)
-            if not count:
-                continue
-            seq = ((notifier.seq + np.arange(count)) & 0xFFFF).astype(np.uint16)
-            notifier.seq += count
-            lose = min(notifier.to_lose, count)
-            notifier.to_lose -= lose
-            self.reports_lost += lose
-            if lose < count:
-                kept = selected[lose:]
-                notifier.pending.append(encode_reports(seq[lose:], ticks[kept], words[kept]))
-        if not self._flush_scheduled and self._loop is not None and any(n.pending for n in self._notifiers.values()):
-            self._flush_scheduled = True
+        """Queue the reports of bank-1 changes and have them written on the loop (lock held)."""
+        if self._notify.report(ticks, words, previous) and self._loop is not None:
             with contextlib.suppress(RuntimeError):  # the loop is closing: nobody is left to read
                 self._loop.call_soon_threadsafe(self._flush)
 
     def _flush(self) -> None:
-        """Write queued reports to their sockets (on the loop thread)."""
         with self._lock:
-            self._flush_scheduled = False
-            for notifier in self._notifiers.values():
-                if not notifier.pending:
-                    continue
-                data = b"".join(notifier.pending)
-                notifier.pending.clear()
-                if notifier.transport.is_closing():
-                    continue
-                count = len(data) // 12
-                if notifier.transport.get_write_buffer_size() > self.send_buffer_limit:
-                    self.reports_lost += count  # pigpiod drops what a slow reader cannot take
-                    continue
-                notifier.transport.write(data)
-                self.reports_sent += count
+            self._notify.flush()

@@ -15,7 +15,11 @@ fixes at 16 Hz. Five pose clients read the Unix socket from one thread that stam
   messages whose one-second window lies inside the flood) against its period, with what the daemon read,
   rate-limited and let the kernel drop; and, as the machine's share, the same while the sender floods a port
   nobody reads.
-Baselines: the 5 ms latency target (p99), 10% of one core, 80 MB; under the flood, no tick later than 2 periods.
+- Deadman: the daemon, driving, is stopped with SIGSTOP; the script's heartbeat (p0) and the enable pins are polled
+  with the real `pigpio` client: the figure is the time from the heartbeat's last change to all enables off (both
+  seen by polling, so it is within one poll of the truth), against deadman_timeout_s plus one control period.
+Baselines: the 5 ms latency target (p99), 10% of one core, 80 MB; under the flood, no tick later than 2 periods;
+the deadman within deadman_timeout_s plus one control period.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import contextlib
 import json
 import math
 import selectors
+import signal
 import socket
 import subprocess
 import tempfile
@@ -298,6 +303,7 @@ def run(quick: bool) -> dict[str, float]:
                 )
                 figures |= {"cpu_share": cpu_share, "rss_mb": rss, "peak_rss_mb": peak}
                 figures |= flood_figures(config, clients, daemon.pid, flood_s)
+                figures |= deadman_figures(config, pi, link, daemon, 3 if quick else 10)
                 if daemon.poll() is not None:
                     raise RuntimeError(f"the daemon exited with {daemon.returncode} during the benchmark")
             finally:
@@ -387,3 +393,52 @@ def flood_figures(config: RobotdConfig, clients: PoseClients, daemon_pid: int, d
         "flood_baseline_tick_worst_ms": base_worst_ms,
         "flood_baseline_tick_p99_ms": base_p99_ms,
     }
+
+
+def _enable_off(pi: Any, gpio: int) -> bool:
+    import pigpio  # noqa: PLC0415
+
+    try:
+        return int(pi.get_PWM_dutycycle(gpio)) == 0
+    except pigpio.error:  # not PWM any more: the script's W wrote it low
+        return int(pi.read(gpio)) == 0
+
+
+def deadman_figures(
+    config: RobotdConfig, pi: Any, link: UdpLink, daemon: subprocess.Popen[str], samples: int
+) -> dict[str, float]:
+    """SIGSTOP the driving daemon `samples` times: seconds from its last heartbeat to the deadman's enables off."""
+    from drivers.motors import enable_and_direction_pins  # noqa: PLC0415
+    from drivers.pigpio_deadman import HEARTBEAT, find_deadmen  # noqa: PLC0415
+
+    enables, directions = enable_and_direction_pins(config.motors)
+    (script_id,) = find_deadmen(pi, [*enables, *directions])
+    delays = []
+    for _ in range(samples):
+        for _ in range(10):  # driving, with a fresh command (the last trip wants one)
+            link.send(Twist(0.3, 0.0, 0.0))
+            time.sleep(0.05)
+        heartbeat, changed = pi.script_status(script_id)[1][HEARTBEAT], time.monotonic()
+        stop_at, stopped = changed + 0.1, False
+        try:
+            while not (stopped and all(_enable_off(pi, gpio) for gpio in enables)):
+                if not stopped and time.monotonic() >= stop_at:
+                    daemon.send_signal(signal.SIGSTOP)
+                    stopped = True
+                beat = pi.script_status(script_id)[1][HEARTBEAT]
+                if beat != heartbeat:
+                    heartbeat, changed = beat, time.monotonic()
+                if time.monotonic() - changed > 5.0:
+                    raise RuntimeError("the deadman script did not stop the motors within 5 s")
+            delays.append(time.monotonic() - changed)
+        finally:
+            daemon.send_signal(signal.SIGCONT)
+        link.send(Twist(0.0, 0.0, 0.0))
+        time.sleep(0.3)  # resumed, and at rest again
+    bound = config.teleop.deadman_timeout_s + 1.0 / config.control.rate_hz
+    p50, worst = percentile(delays, 0.5), max(delays)
+    print(
+        f"deadman script (daemon SIGSTOPped {samples} times while driving): enables off {p50 * 1e3:.0f} ms after the "
+        f"last heartbeat (max {worst * 1e3:.0f} ms); deadman_timeout_s + one control period = {bound * 1e3:.0f} ms"
+    )
+    return {"deadman_stop_p50_s": p50, "deadman_stop_max_s": worst}
