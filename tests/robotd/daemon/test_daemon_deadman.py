@@ -49,7 +49,8 @@ class BareDaemon:
 
     def __init__(self, out: Path, server: VirtualPigpiod) -> None:
         self.out, self.server = out, server
-        self.config_path = robot_config(out, {"pigpiod": {"port": server.port}})
+        # no physics turns the wheels here: the stall guard (it stops wheels that never turn) gets its longest timeout
+        self.config_path = robot_config(out, {"pigpiod": {"port": server.port}, "control": {"stall_timeout_s": 5.0}})
         self.config: RobotdConfig = load(self.config_path)
         self.pins: list[MotorPins] = [getattr(self.config.motors.wheels, wheel) for wheel in WHEELS]
         enables, directions = enable_and_direction_pins(self.config.motors)

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from robotd.config import RobotdConfig, TeleopConfig
+from robotd.config import ControlConfig, RobotdConfig, TeleopConfig
 from robotd.daemon import Daemon
 from robotd.kinematics import Twist
 from robotd.ratelimit import SourceRateLimiter, TokenBucket
@@ -206,7 +206,11 @@ class NoEncoders:
 
 def test_valid_commands_step_the_controller_at_most_once_per_half_period() -> None:
     clock = Clock()
-    config = RobotdConfig(teleop=TeleopConfig(key_file="", allow_unauthenticated=True))
+    # (no encoder publishes here: the stall guard, which would stop a wheel that never turns after its timeout, is
+    # given its longest timeout so that the second of commands below is all throttling)
+    config = RobotdConfig(
+        teleop=TeleopConfig(key_file="", allow_unauthenticated=True), control=ControlConfig(stall_timeout_s=5.0)
+    )
     daemon = Daemon(config, clock=clock, encoders=NoEncoders())  # type: ignore[arg-type]
     period = daemon.controller.period_s
     # one second of valid commands at 10 kHz, handed to the daemon's callback as the socket would
