@@ -12,7 +12,7 @@ import sys
 from collections.abc import Sequence
 
 from robotd import __version__
-from robotd.schema import ConfigError
+from robotd.config.schema import ConfigError
 
 EX_CONFIG = 78
 

@@ -11,7 +11,7 @@ import ast
 from collections.abc import Callable
 from pathlib import Path
 
-from robotd.config import config_reference
+from robotd.config.model import config_reference
 
 
 def _file(path: str) -> Callable[[Path], str]:

@@ -34,7 +34,7 @@ import serial_asyncio_fast
 from drivers.marvelmind.events import Counters, Event, Position, StationaryBeacons
 from drivers.marvelmind.mapbound import MapBound
 from drivers.marvelmind.protocol import MarvelmindParser
-from robotd.config import MarvelmindConfig
+from drivers.settings import MarvelmindSettings
 
 logger = logging.getLogger("robotd.marvelmind")
 
@@ -112,7 +112,7 @@ class MarvelmindReader:
 
     def __init__(
         self,
-        config: MarvelmindConfig,
+        config: MarvelmindSettings,
         on_event: Callable[[Event], None],
         clock: Callable[[], float] = time.monotonic,
     ) -> None:

@@ -44,10 +44,10 @@ from robotd.bench.flood import blast_from_child
 from robotd.bench.flood import flood as flood  # noqa: PLC0414 - re-exported: the load test imports them from here
 from robotd.bench.flood import hostile_datagrams as hostile_datagrams  # noqa: PLC0414
 from robotd.bench.flood import udp_queue as udp_queue  # noqa: PLC0414
-from robotd.config import RobotdConfig, load
-from robotd.demo import Children, private_config
+from robotd.config.model import RobotdConfig, load
 from robotd.kinematics import Twist
-from robotd.teleop_client import UdpLink
+from robotd.tools.demo import Children, private_config
+from robotd.tools.teleop_client import UdpLink
 
 NAME = "daemon"
 TARGET_LATENCY_S = 0.005
@@ -408,8 +408,8 @@ def deadman_figures(
     config: RobotdConfig, pi: Any, link: UdpLink, daemon: subprocess.Popen[str], samples: int
 ) -> dict[str, float]:
     """SIGSTOP the driving daemon `samples` times: seconds from its last heartbeat to the deadman's enables off."""
-    from drivers.motors import enable_and_direction_pins  # noqa: PLC0415
-    from drivers.pigpio_deadman import HEARTBEAT, find_deadmen  # noqa: PLC0415
+    from drivers.pigpiod.deadman import HEARTBEAT, find_deadmen  # noqa: PLC0415
+    from drivers.wheels.motors import enable_and_direction_pins  # noqa: PLC0415
 
     enables, directions = enable_and_direction_pins(config.motors)
     (script_id,) = find_deadmen(pi, [*enables, *directions])

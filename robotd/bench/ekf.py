@@ -11,15 +11,16 @@ import tempfile
 import time
 from pathlib import Path
 
-from drivers.sim.offline import meta_for
-from drivers.sim.offline import run as run_offline
-from drivers.sim.scenarios import build as build_scenario
-from drivers.sim.world import geometry_of, scenario_params
-from robotd import cli, ekf
-from robotd.config import load, parse
-from robotd.logfile import LogWriter, Truth, TwistSample, Wheels, read_log
-from robotd.replay import replay, write_outputs
-from robotd.wheelsteps import TickKinematics
+from robotd import cli
+from robotd.config.model import load, parse
+from robotd.estimation import ekf
+from robotd.estimation.wheelsteps import TickKinematics
+from robotd.logs.sensorlog import LogWriter, Truth, TwistSample, Wheels, read_log
+from robotd.offline.replay import replay, write_outputs
+from robotd.sim.offline import meta_for
+from robotd.sim.offline import run as run_offline
+from robotd.sim.scenarios import build as build_scenario
+from robotd.sim.world import geometry_of, scenario_params
 
 NAME = "ekf"
 CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
@@ -40,7 +41,14 @@ def _robotd_steps(seq: list[tuple[float, float, float, float, float, float]]) ->
     p = ekf.cov_diag(1.0, 1.0, 0.1)
     r = 0.03**2
     start = time.perf_counter()
-    for vx, vy, wz, dt, nx, ny in seq:  # the calls the estimator makes (robotd.history.Predictor, Estimator.on_fix)
+    for (
+        vx,
+        vy,
+        wz,
+        dt,
+        nx,
+        ny,
+    ) in seq:  # the calls the estimator makes (robotd.estimation.history.Predictor, Estimator.on_fix)
         x, y, th, p = ekf.predict(x, y, th, p, vx, vy, wz, dt, noise, midpoint=True)
         inn = ekf.innovation(x, y, th, p, x + nx, y + ny, r, 0.05, 0.0)
         x, y, th, p = ekf.update(x, y, th, p, inn, r)

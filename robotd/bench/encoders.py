@@ -16,12 +16,12 @@ import numpy as np
 import numpy.typing as npt
 import pigpio
 
-from drivers.encoders import PigpioEncoders, wiring
-from drivers.pigpio_link import PigpiodUnavailableError
-from drivers.pigpio_protocol import REPORT_SIZE, encode_reports
-from drivers.quadrature import EncoderWiring, transition_table
-from drivers.sim.quadrature_signal import encoder_words, merge_streams, position_of_state
-from robotd.config import EncodersConfig, PigpiodConfig
+from drivers.pigpiod.client import PigpiodUnavailableError
+from drivers.pigpiod.protocol import REPORT_SIZE, encode_reports
+from drivers.virtual.quadrature_signal import encoder_words, merge_streams, position_of_state
+from drivers.wheels.encoders import PigpioEncoders, wiring
+from drivers.wheels.quadrature import EncoderWiring, transition_table
+from robotd.config.model import EncodersConfig, PigpiodConfig
 
 NAME = "encoders"
 EDGES_PER_S = 136_000
@@ -200,7 +200,7 @@ def _feeder(
     control: multiprocessing.connection.Connection, encoder_wiring: list[EncoderWiring], seconds: float
 ) -> None:
     """Child process: a virtual pigpiod driving four encoders at EDGES_PER_S in real time, in 2 ms batches."""
-    from drivers.sim.vpigpiod import VirtualPigpiod  # noqa: PLC0415
+    from drivers.virtual.pigpiod import VirtualPigpiod  # noqa: PLC0415
 
     with VirtualPigpiod() as server:
         control.send(server.port)

@@ -19,9 +19,9 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from robotd.daemon.teleop import DATAGRAM_SIZE, TAG_SIZE, TeleopSender
 from robotd.kinematics import Twist
-from robotd.teleop import DATAGRAM_SIZE, TAG_SIZE, TeleopSender
-from robotd.teleop_client import UdpLink
+from robotd.tools.teleop_client import UdpLink
 
 
 def hostile_datagrams(rng: random.Random, count: int, now: Callable[[], float] = time.time) -> Iterator[bytes]:

@@ -6,8 +6,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from drivers.sim.offline import simulate
-from robotd.config import load
+from robotd.config.model import load
+from robotd.sim.offline import simulate
 
 NAME = "simulate"
 TARGET_SPEED_UP = 100.0

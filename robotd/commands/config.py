@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from robotd.config import config_reference, load
+from robotd.config.model import config_reference, load
 from robotd.readme import current
 
 
@@ -30,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 def check_config(args: argparse.Namespace) -> int:
     """Validate the file, then what it names on this host (as `robotd run` does); errors are ConfigError (exit 78)."""
-    from robotd.preflight import preflight  # noqa: PLC0415 - keeps `robotd --help` fast (imports teleop)
+    from robotd.daemon.preflight import preflight  # noqa: PLC0415 - keeps `robotd --help` fast (imports teleop)
 
     config = load(args.path)
     if not args.schema_only:

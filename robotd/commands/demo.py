@@ -35,8 +35,8 @@ def run_sim(args: argparse.Namespace) -> int:
     daemon's end (exit 1); no child outlives it."""
     import time  # noqa: PLC0415
 
-    from robotd.config import load  # noqa: PLC0415
-    from robotd.demo import StopRequested, private_config, running_robot, stop_signals  # noqa: PLC0415
+    from robotd.config.model import load  # noqa: PLC0415
+    from robotd.tools.demo import StopRequested, private_config, running_robot, stop_signals  # noqa: PLC0415
 
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -71,7 +71,7 @@ def _statuses(stopped: list[tuple[str, int]]) -> str:
 
 def run_demo_command(args: argparse.Namespace) -> int:
     """Run the demo and print where its results are; 128 + the signal's number after a stop signal."""
-    from robotd.demo import DemoPlan, StopRequested, run_demo, stop_signals  # noqa: PLC0415
+    from robotd.tools.demo import DemoPlan, StopRequested, run_demo, stop_signals  # noqa: PLC0415
 
     if args.loops < 1 or args.side <= 0 or args.speed <= 0:
         print("robotd demo: --loops must be >= 1, --side and --speed > 0", file=sys.stderr)

@@ -8,8 +8,8 @@ import sys
 import time
 from pathlib import Path
 
-from drivers.sim.scenarios import SCENARIOS
-from robotd.config import load
+from robotd.config.model import load
+from robotd.sim.scenarios import SCENARIOS
 
 DEFAULT_SIM_CONFIG = "config/sim.yaml"
 MAX_WORKERS = 2
@@ -43,8 +43,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 def run_experiment_command(args: argparse.Namespace) -> int:
     """Run the experiment, write its outputs, print the summary and how long it took; 2 on bad arguments."""
-    from robotd.experiment import run_experiment  # noqa: PLC0415 - heavy imports only for this command
-    from robotd.experiment_report import write_results  # noqa: PLC0415
+    from robotd.offline.experiment import run_experiment  # noqa: PLC0415 - heavy imports only for this command
+    from robotd.offline.experiment_report import write_results  # noqa: PLC0415
 
     for name in ("loops", "seeds"):
         if getattr(args, name) < 1:

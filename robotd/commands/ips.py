@@ -11,7 +11,7 @@ import sys
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, BinaryIO, Literal
 
-from robotd.config import MarvelmindConfig, RobotdConfig, load
+from robotd.config.model import MarvelmindConfig, RobotdConfig, load
 
 if TYPE_CHECKING:
     from drivers.marvelmind.events import Counters, Event

@@ -9,8 +9,8 @@ import socket
 import sys
 from typing import Any, TextIO
 
-from robotd.config import load
-from robotd.posesock import PROTOCOL, PROTOCOL_VERSION
+from robotd.config.model import load
+from robotd.daemon.posesock import PROTOCOL, PROTOCOL_VERSION
 
 DEFAULT_SOCKET = "/run/robotd/pose.sock"
 

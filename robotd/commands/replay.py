@@ -8,10 +8,11 @@ import sys
 import time
 from pathlib import Path
 
-from robotd import librsf, logcheck
-from robotd.config import RobotdConfig, load, parse
-from robotd.logfile import read_log
-from robotd.replay import format_table, replay, robot_from_log, write_outputs
+from robotd.config.model import RobotdConfig, load, parse
+from robotd.logs import logcheck
+from robotd.logs.sensorlog import read_log
+from robotd.offline import librsf
+from robotd.offline.replay import format_table, replay, robot_from_log, write_outputs
 
 # sysexits.h: what a script calling `robotd replay` can tell apart
 EX_DATAERR = 65  # the log cannot be replayed (no events, times going backwards)

@@ -7,7 +7,7 @@ import logging
 import sys
 from pathlib import Path
 
-from robotd.config import load
+from robotd.config.model import load
 
 DEFAULT_CONFIG = "/etc/robotd/robot.yaml"
 EX_CANTCREAT = 73  # sysexits.h: the sensor log cannot be created
@@ -35,9 +35,9 @@ def configure_logging(verbose: bool) -> None:
 
 def run_daemon_command(args: argparse.Namespace) -> int:
     """Validate the configuration (exit 78 when bad), then run the daemon until stopped."""
-    from robotd.daemon import run_daemon  # noqa: PLC0415 - keeps `robotd --help` fast
-    from robotd.preflight import preflight  # noqa: PLC0415
-    from robotd.recorder import RecordingError  # noqa: PLC0415 - same
+    from robotd.daemon.preflight import preflight  # noqa: PLC0415
+    from robotd.daemon.recorder import RecordingError  # noqa: PLC0415 - same
+    from robotd.daemon.service import run_daemon  # noqa: PLC0415 - keeps `robotd --help` fast
 
     config = load(args.config)
     preflight(config)  # the key file and the bind address, as `robotd check-config` checks them

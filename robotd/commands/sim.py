@@ -7,8 +7,8 @@ import sys
 import time
 from pathlib import Path
 
-from drivers.sim.scenarios import SCENARIOS
-from robotd.config import load
+from robotd.config.model import load
+from robotd.sim.scenarios import SCENARIOS
 
 DEFAULT_SIM_CONFIG = "config/sim.yaml"
 
@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 def run_simulate(args: argparse.Namespace) -> int:
     """Write the scenario's sensor log; prints what it wrote and how much faster than real time it ran."""
-    from drivers.sim.offline import simulate  # noqa: PLC0415 - the simulator is not needed by other commands
+    from robotd.sim.offline import simulate  # noqa: PLC0415 - the simulator is not needed by other commands
 
     config = load(args.config)
     seed = config.sim.seed if args.seed is None else args.seed
@@ -64,7 +64,7 @@ def run_vhw(args: argparse.Namespace) -> int:
     """Run the virtual hardware until interrupted (or for --duration seconds)."""
     import asyncio  # noqa: PLC0415
 
-    from drivers.sim.live import run_virtual_hardware  # noqa: PLC0415
+    from robotd.sim.live import run_virtual_hardware  # noqa: PLC0415
 
     config = load(args.config)
     seed = config.sim.seed if args.seed is None else args.seed

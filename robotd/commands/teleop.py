@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from robotd.config import RobotdConfig, TeleopConfig, load
+from robotd.config.model import RobotdConfig, TeleopConfig, load
+from robotd.daemon.teleop import load_key
 from robotd.kinematics import Twist
-from robotd.teleop import load_key
-from robotd.teleop_client import Leg, UdpLink, run_keyboard, run_plan, square_plan
+from robotd.tools.teleop_client import Leg, UdpLink, run_keyboard, run_plan, square_plan
 
 SYNC_TIMEOUT_S = 2.0  # the daemon answers a hello within a round trip; this covers one that is still starting
 CLOCK_WARNING_S = 1.0  # a clock offset worth a warning (a round trip on a network is milliseconds)

@@ -8,9 +8,9 @@ import signal
 import sys
 import time
 
-from drivers.pigpio_link import PigpiodUnavailableError
-from robotd.config import RobotdConfig, load
-from robotd.motorpins import read_stop_targets
+from drivers.pigpiod.client import PigpiodUnavailableError
+from robotd.config.model import RobotdConfig, load
+from robotd.config.motorpins import read_stop_targets
 
 EX_UNAVAILABLE = 69
 
@@ -52,7 +52,7 @@ def _config(path: str | None) -> RobotdConfig:
 
 def stop_motors(args: argparse.Namespace) -> int:
     """Zero every motor through pigpiod with the pins it can read (defaults for the rest); 69: pigpiod unreachable."""
-    from drivers.motors import stop_all_motors  # noqa: PLC0415 - keep `robotd --help` fast
+    from drivers.wheels.motors import stop_all_motors  # noqa: PLC0415 - keep `robotd --help` fast
 
     targets = read_stop_targets(args.config)  # never refuses: a broken file still leaves the pins it can read
     for fallback in targets.fallbacks:
@@ -68,7 +68,7 @@ def stop_motors(args: argparse.Namespace) -> int:
 
 def spin_wheels(args: argparse.Namespace) -> int:
     """Hold the given duties for a while; the motors are zeroed however the program ends."""
-    from drivers.motors import GpiozeroMotors, termination_as_exit  # noqa: PLC0415
+    from drivers.wheels.motors import GpiozeroMotors, termination_as_exit  # noqa: PLC0415
 
     config = _config(args.config)
     duties = (args.duty[0], args.duty[1], args.duty[2], args.duty[3])
@@ -85,7 +85,7 @@ def spin_wheels(args: argparse.Namespace) -> int:
 
 def vpigpiod(args: argparse.Namespace) -> int:
     """Serve the virtual pigpiod until SIGINT or SIGTERM."""
-    from drivers.sim.vpigpiod import VirtualPigpiod  # noqa: PLC0415
+    from drivers.virtual.pigpiod import VirtualPigpiod  # noqa: PLC0415
 
     async def serve() -> None:
         stop = asyncio.Event()

@@ -17,7 +17,7 @@ import pytest
 from drivers.marvelmind.events import Event, Position
 from drivers.marvelmind.frames import encode_position_mm
 from drivers.marvelmind.reader import Backoff, LinkState, MarvelmindReader, resolve_device
-from robotd.config import MarvelmindConfig
+from robotd.config.model import MarvelmindConfig
 
 pytestmark = pytest.mark.timeout(20)
 

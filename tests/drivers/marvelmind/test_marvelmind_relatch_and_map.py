@@ -20,8 +20,8 @@ from drivers.marvelmind.frames import encode_beacons_mm, encode_position_mm
 from drivers.marvelmind.mapbound import MapBound
 from drivers.marvelmind.protocol import RELATCH_FRAMES, MarvelmindParser
 from drivers.marvelmind.reader import MarvelmindReader
-from drivers.sim.vmarvelmind import VirtualMarvelmind
-from robotd.config import MarvelmindConfig
+from drivers.virtual.marvelmind import VirtualMarvelmind
+from robotd.config.model import MarvelmindConfig
 
 BEACONS = (StationaryBeacon(1, 0.0, 0.0, 2.0), StationaryBeacon(2, 5.0, 0.0, 2.0), StationaryBeacon(3, 5.0, 4.0, 2.0))
 

@@ -7,12 +7,12 @@ from collections.abc import Iterator
 
 import pytest
 
-from drivers.motors import GpiozeroMotors, enable_and_direction_pins, wheel_pins
-from drivers.pigpio_protocol import Mode
-from drivers.sim.l298 import Channel, bridge_rule_violations
-from drivers.sim.pin_model import PinWrite
-from drivers.sim.vpigpiod import VirtualPigpiod
-from robotd.config import MotorsConfig, PigpiodConfig
+from drivers.pigpiod.protocol import Mode
+from drivers.virtual.l298 import Channel, bridge_rule_violations
+from drivers.virtual.pigpiod import VirtualPigpiod
+from drivers.virtual.pins import PinWrite
+from drivers.wheels.motors import GpiozeroMotors, enable_and_direction_pins, wheel_pins
+from robotd.config.model import MotorsConfig, PigpiodConfig
 
 MOTORS = MotorsConfig()
 CHANNELS = [Channel(p.enable, p.in1, p.in2) for p in wheel_pins(MOTORS)]

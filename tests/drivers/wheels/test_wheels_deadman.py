@@ -11,8 +11,7 @@ from typing import Any
 import pigpio
 import pytest
 
-from drivers.motors import GpiozeroMotors, enable_and_direction_pins, stop_all_motors
-from drivers.pigpio_deadman import (
+from drivers.pigpiod.deadman import (
     SIGNATURE,
     DeadmanLostError,
     PigpioDeadman,
@@ -20,10 +19,11 @@ from drivers.pigpio_deadman import (
     find_deadmen,
     pin_mask,
 )
-from drivers.pigpio_protocol import Err
-from drivers.sim.pin_model import PinWrite
-from drivers.sim.vpigpiod import VirtualPigpiod
-from robotd.config import MotorsConfig, PigpiodConfig
+from drivers.pigpiod.protocol import Err
+from drivers.virtual.pigpiod import VirtualPigpiod
+from drivers.virtual.pins import PinWrite
+from drivers.wheels.motors import GpiozeroMotors, enable_and_direction_pins, stop_all_motors
+from robotd.config.model import MotorsConfig, PigpiodConfig
 
 MOTORS = MotorsConfig()
 ENABLES, DIRECTIONS = enable_and_direction_pins(MOTORS)

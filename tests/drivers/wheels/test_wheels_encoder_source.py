@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from wheels_support import wait_until, walk
 
-from drivers.encoders import PigpioEncoders, WheelTicks, wiring
-from drivers.pigpio_link import PigpiodUnavailableError
-from drivers.pigpio_protocol import Mode, Pull
-from drivers.quadrature import Decoding
-from drivers.sim.quadrature_signal import encoder_words, merge_streams, position_of_state
-from drivers.sim.vpigpiod import VirtualPigpiod
+from drivers.pigpiod.client import PigpiodUnavailableError
+from drivers.pigpiod.protocol import Mode, Pull
+from drivers.virtual.pigpiod import VirtualPigpiod
+from drivers.virtual.quadrature_signal import encoder_words, merge_streams, position_of_state
+from drivers.wheels.encoders import PigpioEncoders, WheelTicks, wiring
+from drivers.wheels.quadrature import Decoding
 from robotd.bench.encoders import CallbackEncoders
-from robotd.config import EncodersConfig, PigpiodConfig
+from robotd.config.model import EncodersConfig, PigpiodConfig
 
 # The virtual pigpiod starts 5 s before pigpio's 32-bit tick wraps, and the test stamps its edges from 40 ms before the
 # wrap: the stream crosses it however long a busy machine takes to connect (a start 30 ms before the wrap, with edges

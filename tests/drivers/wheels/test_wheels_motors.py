@@ -14,12 +14,12 @@ from pathlib import Path
 import pytest
 from wheels_support import wait_until
 
-from drivers.motors import GpiozeroMotors, command_duty, stop_all_motors, wheel_pins
-from drivers.pigpio_link import PigpiodUnavailableError
-from drivers.pigpio_protocol import Mode
-from drivers.sim.vpigpiod import VirtualPigpiod
+from drivers.pigpiod.client import PigpiodUnavailableError
+from drivers.pigpiod.protocol import Mode
+from drivers.virtual.pigpiod import VirtualPigpiod
+from drivers.wheels.motors import GpiozeroMotors, command_duty, stop_all_motors, wheel_pins
 from robotd.cli import main
-from robotd.config import MotorsConfig, PigpiodConfig
+from robotd.config.model import MotorsConfig, PigpiodConfig
 
 REPO = Path(__file__).resolve().parents[3]
 SPIN_ARGS = ["--duty", "0.5", "-0.3", "0.2", "0.9", "--seconds", "60"]

@@ -10,12 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from wheels_support import levels_of_positions, walk
 
-from drivers.encoders import PigpioEncoders, wiring
-from drivers.notify_stream import SequenceGaps, TickClock
-from drivers.quadrature import Decoding, EdgeTimedSpeed, EncoderWiring, QuadratureDecoder
-from drivers.sim.quadrature_signal import encoder_words, merge_streams
+from drivers.pigpiod.notifications import SequenceGaps, TickClock
+from drivers.virtual.quadrature_signal import encoder_words, merge_streams
+from drivers.wheels.encoders import PigpioEncoders, wiring
+from drivers.wheels.quadrature import Decoding, EdgeTimedSpeed, EncoderWiring, QuadratureDecoder
 from robotd.bench.encoders import EdgeDecoder, per_edge_replay, recorded_stream
-from robotd.config import EncodersConfig, PigpiodConfig
+from robotd.config.model import EncodersConfig, PigpiodConfig
 
 A, B = 4, 17
 WHEEL = [EncoderWiring(A, B)]

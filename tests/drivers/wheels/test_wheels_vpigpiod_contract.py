@@ -21,8 +21,8 @@ from gpiozero import DigitalInputDevice, DigitalOutputDevice, PWMOutputDevice
 from gpiozero.pins.pigpio import PiGPIOFactory
 from wheels_support import wait_until
 
-from drivers.pigpio_protocol import COMMAND, REPORT_SIZE, Cmd, decode_reports, decode_result, encode_command
-from drivers.sim.vpigpiod import PI4B_4GB, VirtualPigpiod
+from drivers.pigpiod.protocol import COMMAND, REPORT_SIZE, Cmd, decode_reports, decode_result, encode_command
+from drivers.virtual.pigpiod import PI4B_4GB, VirtualPigpiod
 
 NEAR_WRAP = (1 << 32) - 50_000  # a tick 50 ms before pigpio's 32-bit tick wraps
 

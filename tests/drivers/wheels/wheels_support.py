@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
-from drivers.sim.quadrature_signal import GRAY_CYCLE
+from drivers.virtual.quadrature_signal import GRAY_CYCLE
 
 
 def wait_until(condition: Callable[[], bool], timeout_s: float = 3.0) -> None:
@@ -22,7 +22,7 @@ def wait_until(condition: Callable[[], bool], timeout_s: float = 3.0) -> None:
 
 def levels_of_positions(positions: list[int], a: int, b: int) -> npt.NDArray[np.uint32]:
     """Bank-1 words of an encoder on pins a, b walking through x4 positions, written out by hand from the
-    Gray cycle (independent of drivers.sim.quadrature_signal's vectorised version)."""
+    Gray cycle (independent of drivers.virtual.quadrature_signal's vectorised version)."""
     words = []
     for position in positions:
         state = int(GRAY_CYCLE[position % 4])

@@ -20,10 +20,10 @@ from typing import Any
 
 import pigpio
 
-from robotd.config import WHEELS, MotorPins, RobotdConfig, load
-from robotd.demo import Children, private_config
+from robotd.config.model import WHEELS, MotorPins, RobotdConfig, load
 from robotd.kinematics import Twist
-from robotd.teleop_client import UdpLink
+from robotd.tools.demo import Children, private_config
+from robotd.tools.teleop_client import UdpLink
 
 REPO = Path(__file__).resolve().parents[3]
 SIM_CONFIG = REPO / "config" / "sim.yaml"

@@ -21,16 +21,16 @@ import pigpio
 import pytest
 from daemon_support import robot_config, running_robot, wait_until
 
-from drivers.motors import enable_and_direction_pins
-from drivers.pigpio_deadman import TRIPS, find_deadmen
-from drivers.pigpio_protocol import Mode
-from drivers.sim.l298 import Channel, bridge_rule_violations
-from drivers.sim.pin_model import PinWrite
-from drivers.sim.vpigpiod import VirtualPigpiod
-from robotd.config import WHEELS, MotorPins, RobotdConfig, load
-from robotd.demo import Children
+from drivers.pigpiod.deadman import TRIPS, find_deadmen
+from drivers.pigpiod.protocol import Mode
+from drivers.virtual.l298 import Channel, bridge_rule_violations
+from drivers.virtual.pigpiod import VirtualPigpiod
+from drivers.virtual.pins import PinWrite
+from drivers.wheels.motors import enable_and_direction_pins
+from robotd.config.model import WHEELS, MotorPins, RobotdConfig, load
 from robotd.kinematics import Twist
-from robotd.teleop_client import UdpLink
+from robotd.tools.demo import Children
+from robotd.tools.teleop_client import UdpLink
 
 pytestmark = pytest.mark.slow
 

@@ -9,8 +9,8 @@ from collections.abc import Callable
 
 import pytest
 
-from drivers.pigpio_deadman import DeadmanLostError
-from robotd.deadman_keeper import DeadmanKeeper
+from drivers.pigpiod.deadman import DeadmanLostError
+from robotd.daemon.deadman_keeper import DeadmanKeeper
 
 
 class FakeDeadman:

@@ -11,7 +11,7 @@ import pytest
 from daemon_support import Robot, running_robot, wait_until
 
 from robotd.kinematics import Twist
-from robotd.teleop_client import UdpLink
+from robotd.tools.teleop_client import UdpLink
 
 pytestmark = pytest.mark.slow
 

@@ -7,9 +7,9 @@ import io
 from pathlib import Path
 from typing import Any
 
-from drivers.sim.offline import simulate
-from robotd.config import RobotdConfig, load
-from robotd.logfile import SensorLog, parse_lines
+from robotd.config.model import RobotdConfig, load
+from robotd.logs.sensorlog import SensorLog, parse_lines
+from robotd.sim.offline import simulate
 
 SIM_CONFIG = Path(__file__).resolve().parents[3] / "config" / "sim.yaml"
 

@@ -10,7 +10,8 @@ from filterpy.kalman import ExtendedKalmanFilter
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robotd import ekf, kinematics
+from robotd import kinematics
+from robotd.estimation import ekf
 
 
 class _ModelEKF(ExtendedKalmanFilter):  # type: ignore[misc]

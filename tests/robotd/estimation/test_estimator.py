@@ -7,8 +7,8 @@ import math
 import random
 
 from robotd import kinematics
-from robotd.config import EkfConfig, paper_preset
-from robotd.estimator import Estimator, PositionMode, Verdict
+from robotd.config.model import EkfConfig, paper_preset
+from robotd.estimation.estimator import Estimator, PositionMode, Verdict
 
 GEOMETRY = kinematics.Geometry()
 CPR = 6800

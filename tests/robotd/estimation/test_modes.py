@@ -9,9 +9,9 @@ import random
 import pytest
 
 from robotd import kinematics
-from robotd.config import EkfConfig, paper_preset
-from robotd.estimator import Estimator
-from robotd.modes import (
+from robotd.config.model import EkfConfig, paper_preset
+from robotd.estimation.estimator import Estimator
+from robotd.estimation.modes import (
     HEADING_TRANSITIONS,
     POSITION_TRANSITIONS,
     REALIGNING,

@@ -11,13 +11,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robotd import ekf, estimator, kinematics
-from robotd.config import EkfConfig
-from robotd.estimator import Estimator
-from robotd.fixgate import FixGate
-from robotd.history import Anchor, History, Predictor, State
-from robotd.modes import Modes
-from robotd.track import OdometryTrack
+from robotd import kinematics
+from robotd.config.model import EkfConfig
+from robotd.estimation import ekf, estimator
+from robotd.estimation.estimator import Estimator
+from robotd.estimation.fixgate import FixGate
+from robotd.estimation.history import Anchor, History, Predictor, State
+from robotd.estimation.modes import Modes
+from robotd.estimation.track import OdometryTrack
 
 GEOMETRY = kinematics.Geometry()
 CPR = 6800

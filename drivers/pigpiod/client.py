@@ -1,0 +1,163 @@
+"""A small asyncio client of pigpiod's socket: commands answered one at a time or sent without waiting, and
+notification sockets.
+
+robotd's encoder source and motor deadman talk to pigpiod with this instead of the `pigpio` library, whose blocking
+calls and callback thread do not belong on the event loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+from dataclasses import dataclass
+
+from drivers.pigpiod.protocol import COMMAND, EXTENDED_ANSWERS, Cmd, Err, decode_result, encode_command
+
+
+class PigpiodUnavailableError(ConnectionError):
+    """pigpiod does not answer at the configured host and port."""
+
+    def __init__(self, host: str, port: int, reason: object) -> None:
+        super().__init__(
+            f"pigpiod is not reachable at {host}:{port} ({reason}); is it running? "
+            "On the robot: sudo systemctl start pigpiod; in simulation: robotd vpigpiod --port "
+            f"{port}"
+        )
+        self.host, self.port = host, port
+
+
+class PigpioCommandError(Exception):
+    """pigpiod refused a command."""
+
+    def __init__(self, cmd: int, p1: int, p2: int, code: int) -> None:
+        name = Err(code).name if code in Err._value2member_map_ else "error"
+        command = Cmd(cmd).name if cmd in Cmd._value2member_map_ else str(cmd)
+        super().__init__(f"pigpiod refused {command}({p1}, {p2}): {name} ({code})")
+        self.code = code
+
+
+async def _open(host: str, port: int, timeout_s: float) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    try:
+        reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout_s)
+    except (OSError, TimeoutError) as error:
+        raise PigpiodUnavailableError(host, port, error or "timed out") from error
+    sock = writer.get_extra_info("socket")
+    if sock is not None:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # commands are tiny and wait for their answer
+    return reader, writer
+
+
+@dataclass(frozen=True, slots=True)
+class Answer:
+    """pigpiod's answer to one command: the command it answers, its signed result, the data after it if any."""
+
+    cmd: int
+    result: int
+    data: bytes = b""
+
+
+class PigpioLink:
+    """A command socket to pigpiod.
+
+    Either one command at a time (`command`, `query`: each waits for its answer), or commands sent without waiting
+    (`post`) whose answers the owner reads in order (`read_answer`); not both at once on one link.
+    """
+
+    def __init__(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, host: str, port: int, timeout_s: float
+    ) -> None:
+        self._reader, self._writer = reader, writer
+        self._lock = asyncio.Lock()
+        self.host, self.port = host, port
+        self.timeout_s = timeout_s
+
+    @classmethod
+    async def connect(cls, host: str, port: int, timeout_s: float) -> PigpioLink:
+        """Connect, or raise PigpiodUnavailableError; `timeout_s` also bounds each command's answer."""
+        reader, writer = await _open(host, port, timeout_s)
+        return cls(reader, writer, host, port, timeout_s)
+
+    async def command(
+        self, cmd: int, p1: int = 0, p2: int = 0, *, extension: bytes = b"", unsigned: bool = False
+    ) -> int:
+        """Send one command (with its extension, if any) and return its result; a negative one raises
+        PigpioCommandError.
+
+        `unsigned` reads the result as a 32-bit value instead (ticks and bank levels use all 32 bits). A pigpiod
+        that does not answer in time raises TimeoutError (an OSError, like a reset connection).
+        """
+        answer = await self._exchange(cmd, p1, p2, extension)
+        if unsigned:
+            return answer.result & 0xFFFFFFFF
+        if answer.result < 0:
+            raise PigpioCommandError(cmd, p1, p2, answer.result)
+        return answer.result
+
+    async def query(self, cmd: int, p1: int = 0, p2: int = 0) -> bytes:
+        """Send a command whose answer carries data (PROCP) and return the data; errors as `command`."""
+        answer = await self._exchange(cmd, p1, p2, b"")
+        if answer.result < 0:
+            raise PigpioCommandError(cmd, p1, p2, answer.result)
+        return answer.data
+
+    async def _exchange(self, cmd: int, p1: int, p2: int, extension: bytes) -> Answer:
+        async with self._lock:
+            self._writer.write(encode_command(cmd, p1, p2, extension))
+            return await asyncio.wait_for(self.read_answer(), self.timeout_s)
+
+    def post(self, cmd: int, p1: int = 0, p2: int = 0, extension: bytes = b"") -> None:
+        """Send a command without waiting for its answer (never blocks: the socket buffers it)."""
+        self._writer.write(encode_command(cmd, p1, p2, extension))
+
+    async def read_answer(self) -> Answer:
+        """The next answer on the socket, with its data; a closed socket raises ConnectionResetError."""
+        try:
+            header = await self._reader.readexactly(COMMAND.size)
+            cmd = int(COMMAND.unpack(header)[0])
+            result = decode_result(header)
+            data = await self._reader.readexactly(result) if cmd in EXTENDED_ANSWERS and result > 0 else b""
+        except asyncio.IncompleteReadError as error:
+            raise ConnectionResetError("pigpiod closed the command socket") from error
+        return Answer(cmd, result, data)
+
+    def is_closing(self) -> bool:
+        """Whether the socket is closed or being closed."""
+        return self._writer.is_closing()
+
+    def abort(self) -> None:
+        """Close the socket now, dropping anything not yet sent (no wait)."""
+        self._writer.transport.abort()
+
+    async def close(self) -> None:
+        """Close the socket."""
+        self._writer.close()
+        with contextlib.suppress(OSError):  # already reset by the other end: closed all the same
+            await self._writer.wait_closed()
+
+
+async def open_notifications(
+    host: str, port: int, timeout_s: float
+) -> tuple[int, asyncio.StreamReader, asyncio.StreamWriter]:
+    """Open a socket, turn it into a notification socket with NOIB; returns (handle, reader, writer)."""
+    reader, writer = await _open(host, port, timeout_s)
+    try:
+        writer.write(encode_command(Cmd.NOIB))
+        answer = await asyncio.wait_for(reader.readexactly(COMMAND.size), timeout_s)
+    except (OSError, TimeoutError, asyncio.IncompleteReadError) as error:
+        writer.close()
+        raise PigpiodUnavailableError(host, port, f"no answer to NOIB: {error!r}") from error
+    handle = decode_result(answer)
+    if handle < 0:
+        writer.close()
+        raise PigpioCommandError(Cmd.NOIB, 0, 0, handle)
+    return handle, reader, writer
+
+
+def probe(host: str, port: int, timeout_s: float) -> None:
+    """Check that something accepts connections at host:port, or raise PigpiodUnavailableError (blocking)."""
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            pass
+    except OSError as error:
+        raise PigpiodUnavailableError(host, port, error) from error

@@ -1,1 +1,0 @@
-"""The virtual robot: physics, a virtual pigpiod and a virtual Marvelmind."""

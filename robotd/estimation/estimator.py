@@ -1,0 +1,357 @@
+"""robotd's pose estimator: the EKF of robotd.estimation.ekf wrapped in what a trustworthy filter needs. Pure: no I/O,
+no asyncio.
+
+Theory of operation
+- Inputs (wheel ticks or body twists) make prediction steps on the odometry track (robotd.estimation.track). Ticks are
+  exact displacements: they are accumulated and become one step at their mean twist at most every `predict_period_s`.
+  A twist is a sample held until the next.
+- Fixes leave anchors on the track (robotd.estimation.history): the state at any time is the newest anchor before it
+  carried forward through the steps since. A fix measured at `t_meas` in the past is fused at that time, from the state
+  there; the anchors after it are made again (a late fix lands exactly where an on-time one would). Between steps the
+  state moves with the twist of the step it falls in, and beyond the newest step with the twist of the ticks not yet
+  integrated (or the twist in force).
+- Each fix gets a verdict (robotd.estimation.fixgate): the first agreeing fixes seed the position, then fixes are gated
+  by their NIS (chi-square, 2 dof); rejected fixes that keep coming for `recovery_min_s` and agree with each other once
+  the odometry motion is removed re-seed the position (the robot was carried, or the filter drifted). The IPS noise is
+  estimated from the median of recent innovations, robust to outliers, between two bounds.
+- The heading is checked once the robot has driven `heading_align_m` (robotd.estimation.heading): the odometry track is
+  rotated onto the fixes (a least-squares rotation); when that rotation disagrees with the filter, the filter takes it.
+  An unknown initial heading therefore costs one short drive, not a lost robot.
+- Where the position and the heading stand (placed or not, tracking or rejecting; heading unknown, aligned,
+  confirmed or suspect) is one state machine, robotd.estimation.modes.
+- The paper's filter is the same code configured with those features off (robotd.config.model.paper_preset).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass
+from math import isfinite
+
+from robotd import kinematics
+from robotd.config.model import EkfConfig
+from robotd.estimation import ekf
+from robotd.estimation.fixgate import Diagnostics, FixGate
+from robotd.estimation.heading import HeadingAligner, HeadingCheck, RotationFit
+from robotd.estimation.history import Anchor, FixRecord, History, Predictor, State
+from robotd.estimation.modes import Modes, PositionMode, Verdict
+from robotd.estimation.track import OdometryTrack, Twist3
+from robotd.estimation.wheelsteps import TickKinematics, WheelFeed
+
+TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
+
+
+@dataclass(frozen=True, slots=True)
+class PoseEstimate:
+    """The estimate at time t: pose, body twist in force, 3x3 covariance row-major, the time since the measurement
+    of the newest fix that moved the estimate (fix_age_s), and the position mode."""
+
+    t: float
+    x: float
+    y: float
+    theta: float
+    vx: float
+    vy: float
+    wz: float
+    cov: tuple[float, float, float, float, float, float, float, float, float]
+    fix_age_s: float
+    state: PositionMode
+
+
+class Estimator:
+    """Pose estimation from wheel odometry and IPS fixes (see the module docstring)."""
+
+    def __init__(
+        self,
+        ekf_config: EkfConfig,
+        geometry: kinematics.Geometry,
+        ips_offset_m: tuple[float, float],
+        counts_per_rev: int,
+    ) -> None:
+        c = self.config = ekf_config
+        self.geometry = geometry
+        self.counts_per_rev = counts_per_rev
+        self._offset = ips_offset_m if c.lever_arm else (0.0, 0.0)
+        noise = ekf.ControlNoise(
+            lin2=c.odom_along_sigma_m**2,
+            lat2=c.odom_across_sigma_m**2,
+            slip2=c.slip_heading_sigma_rad**2,
+            turn2=c.turn_heading_sigma_rad**2,
+            const_v2=c.step_sigma_v_mps**2,
+            const_w2=c.step_sigma_w_rad_s**2,
+        )
+        self.modes = Modes(heading_known=c.initial_sigma[2] <= c.unknown_heading_sigma_rad)
+        self._track = OdometryTrack(midpoint=c.midpoint_heading)
+        self._predictor = Predictor(noise, self.modes, midpoint=c.midpoint_heading)
+        x0, y0, th0 = c.initial_pose
+        first = Anchor(-math.inf, x0, y0, ekf.wrap_angle(th0), ekf.cov_diag(*c.initial_sigma), None)
+        self._history = History(self._track, self._predictor, first, c.history_s, keep_past=c.latency_compensation)
+        self._last_accept_t = -math.inf
+        self._wheels = WheelFeed(TickKinematics(geometry, counts_per_rev), c.predict_period_s)
+        # the state at the newest step: (newest anchor, that step's list index, the state there), or None
+        self._newest: tuple[Anchor, int, State] | None = None
+        self._aligner = HeadingAligner(c.heading_align_m, self._offset, enabled=c.heading_align_m > 0.0)
+        self._heading_check = HeadingCheck()
+        self.counters: dict[str, int] = dict.fromkeys(
+            (
+                "wheels",
+                "twists",
+                "fixes",
+                "fixes_accepted",
+                "fixes_rejected",
+                "fixes_seeded",
+                "recoveries",
+                "heading_realigned",
+                "fixes_lost",
+                "dropped_non_finite",
+                "dropped_out_of_order",
+                "fixes_too_old",
+                "late_fixes",
+            ),
+            0,
+        )
+        self._fix_gate = FixGate(c, self.counters, self.modes)
+
+    # --- inputs -----------------------------------------------------------------------------------
+
+    def on_wheels(self, t: float, ticks: tuple[int, int, int, int]) -> None:
+        """Cumulative encoder counts (FL FR RL RR) at time t."""
+        wheels = self._wheels
+        if not wheels.accepts(t):
+            self.counters["dropped_out_of_order" if math.isfinite(t) else "dropped_non_finite"] += 1
+            return
+        self.counters["wheels"] += 1
+        step = wheels.sample(t, ticks)
+        if step is not None:
+            self._step_to(step[0], step[1], step[1])
+
+    def on_twist(self, t: float, vx: float, vy: float, wz: float) -> None:
+        """A measured body twist (m/s, rad/s) at time t, held until the next one."""
+        if not (math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(wz)):
+            self.counters["dropped_non_finite"] += 1
+            return
+        if self._track.t and t < self._track.t[-1]:
+            self.counters["dropped_out_of_order"] += 1
+            return
+        self.counters["twists"] += 1
+        track = self._track
+        held = (track.hx[-1], track.hy[-1], track.hw[-1]) if len(track) else (0.0, 0.0, 0.0)
+        self._step_to(t, held, (vx, vy, wz))
+
+    def on_fix_lost(self, t: float) -> None:  # noqa: ARG002 - the daemon's interface carries the time
+        """A position packet flagged "coordinates unavailable": never fused, only counted."""
+        self.counters["fixes_lost"] += 1
+
+    def _set_clock(self, t: float) -> None:
+        """The first input or fix sets the clock: the initial state is at t."""
+        first = self._history.anchors[0]
+        self._history.reset(Anchor(t, first.x, first.y, first.theta, first.p, None))
+
+    def _step_to(self, t: float, step_u: Twist3, held: Twist3) -> None:
+        """A step ending at t with twist step_u, then `held` in force (the first input starts the track)."""
+        track, history = self._track, self._history
+        if not len(track):
+            start = min(t, history.start) if history.start > -math.inf else t
+            track.start(start, held if start == t else (0.0, 0.0, 0.0))
+            if history.start == -math.inf:
+                self._set_clock(start)
+            if start < t:
+                track.append(t, (0.0, 0.0, 0.0), held)
+        elif t > track.t[-1]:
+            track.append(t, step_u, held)
+        else:
+            track.hold(held)
+        if len(track) - TRIM_STEPS > 2 * TRIM_STEPS:
+            needed = history.trim(t, self._pending)
+            if needed > TRIM_STEPS:
+                track.drop_before(needed)
+                self._newest = None  # its step index moved
+
+    def _pending(self) -> Twist3:
+        """The twist beyond the newest step: that of the samples fed since (their mean), or the one in force."""
+        u = self._wheels.pending()
+        if u is not None:
+            return u
+        track = self._track
+        if not track.t:
+            return (0.0, 0.0, 0.0)
+        return track.hx[-1], track.hy[-1], track.hw[-1]
+
+    # --- fixes ------------------------------------------------------------------------------------
+
+    def on_fix(self, t: float, x: float, y: float, t_meas: float) -> Diagnostics | None:
+        """An IPS fix of the beacon (m) that arrived at t and was measured at t_meas; returns its record."""
+        counters = self.counters
+        counters["fixes"] += 1
+        if not (isfinite(t) and isfinite(x) and isfinite(y)):
+            counters["dropped_non_finite"] += 1
+            return None
+        if not self.config.latency_compensation or not isfinite(t_meas) or t_meas > t:
+            t_meas = t
+        history, track = self._history, self._track
+        if history.times[0] == -math.inf:
+            self._set_clock(t_meas)
+        newest_step = track.t[-1] if track.t else -math.inf
+        gate = self._fix_gate
+        if t_meas < history.times[0] or (
+            self.config.latency_compensation and t_meas < newest_step - self.config.history_s
+        ):
+            counters["fixes_too_old"] += 1
+            nan = math.nan
+            return Diagnostics(
+                t, t_meas, (nan, nan), (nan, nan, nan), nan, gate.gate, Verdict.TOO_OLD, math.sqrt(gate.r)
+            )
+        anchors = history.anchors
+        k = bisect.bisect_right(history.times, t_meas) - 1
+        if t_meas < newest_step or k < len(anchors) - 1:
+            counters["late_fixes"] += 1
+        prior = history.state_at(anchors[k], t_meas, self._pending)
+        px, py, pth, pp = prior
+        r = gate.r
+        inn = ekf.innovation(px, py, pth, pp, x, y, r, self._offset[0], self._offset[1])
+        verdict = gate.judge(t_meas, inn, r)
+        before = self.modes.on_verdict(verdict)
+        aligner = self._aligner
+        if aligner.enabled and self.modes.placed:
+            if before is PositionMode.INITIALISING:
+                self._restart_window()  # the first window starts with the fix that placed the position
+            aligner.record(x, y, t_meas, track.pose_at(t_meas))
+        if verdict is Verdict.ACCEPTED:
+            anchor = self._fuse(prior, t_meas, (x, y, r), inn)
+        elif verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
+            anchor = self._seed(prior, t_meas, (x, y, r), verdict)
+        else:
+            anchor = Anchor(t_meas, px, py, pth, pp, FixRecord(x, y, r, fused=False))
+        history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
+        if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
+            self._last_accept_t = max(self._last_accept_t, t_meas)
+        if aligner.enabled and track.t and track.dist[-1] >= aligner.next_fit:
+            self._maybe_realign()
+        return Diagnostics(
+            t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)
+        )
+
+    def _remake(self, state: State, old: Anchor) -> Anchor:
+        """An anchor made again at its time from the state there: its fix fused again, its seed moved again."""
+        fix = old.fix
+        x, y, th, p = state
+        if fix is None:
+            return Anchor(old.t, x, y, th, p, None)
+        if fix.fused:
+            inn = ekf.innovation(x, y, th, p, fix.zx, fix.zy, fix.r, *self._offset)
+            return self._fuse(state, old.t, (fix.zx, fix.zy, fix.r), inn)
+        if fix.seed is not None:
+            r = fix.r
+            return Anchor(old.t, x + fix.seed[0], y + fix.seed[1], th, (r, 0.0, 0.0, r, 0.0, p[5]), fix)
+        return Anchor(old.t, x, y, th, p, fix)
+
+    def _fuse(self, prior: State, t: float, z: tuple[float, float, float], inn: ekf.Innovation) -> Anchor:
+        """The anchor of fix z = (zx, zy, r) fused at t into the prior."""
+        # at rest a fix says nothing about the heading; with the heading unknown the model has no heading to correct
+        if not self.modes.heading_known:
+            freeze = True
+        else:
+            u = self._track.twist_at(t) or self._pending()
+            freeze = math.hypot(u[0], u[1]) < self.config.heading_min_speed_mps
+        x, y, th, p = ekf.update(prior[0], prior[1], prior[2], prior[3], inn, z[2], freeze_heading=freeze)
+        return Anchor(t, x, y, th, p, FixRecord(z[0], z[1], z[2], fused=True))
+
+    def _seed(self, prior: State, t: float, z: tuple[float, float, float], verdict: Verdict) -> Anchor:
+        """Move the beacon onto the agreeing fixes (their median innovation), forgetting the position's past."""
+        if verdict is Verdict.RECOVERED:
+            self._restart_window()  # carried robots may have been turned too (modes: the heading is unknown again)
+            self._heading_check.suspect = None
+        dx, dy = self._fix_gate.seed_shift(verdict)
+        zx, zy, r = z
+        p = (r, 0.0, 0.0, r, 0.0, prior[3][5])
+        return Anchor(t, prior[0] + dx, prior[1] + dy, prior[2], p, FixRecord(zx, zy, r, fused=False, seed=(dx, dy)))
+
+    # --- heading alignment --------------------------------------------------------------------------
+
+    def _restart_window(self) -> None:
+        t, pose, dist = self._track.newest(self._history.start)
+        self._aligner.restart(t, pose, dist)
+
+    def _maybe_realign(self) -> None:
+        """Take the heading of the aligner's rotation fit when the heading modes say so (robotd.estimation.modes)."""
+        now_t, now_pose, dist = self._track.newest(self._history.start)
+        # an unknown heading is taken from a whole window: the longer the track, the better its direction
+        fit = self._aligner.check(self._fix_gate.r, now_t, now_pose, dist, whole=not self.modes.heading_known)
+        if fit is None:
+            return
+        _, _, theta, p = self._state_at_newest_step()
+        evidence = self._heading_check.evidence(fit, theta, p[5], self.modes.heading)
+        if evidence is not None and self.modes.on_evidence(evidence):
+            self._realign(fit)
+
+    def _realign(self, fit: RotationFit) -> None:
+        """Restart the state from the window's fit: its heading, and the position its translation puts it at."""
+        ax, ay, ath = fit.window_odo
+        sigma = fit.sigma
+        self.counters["heading_realigned"] += 1
+        c, s = math.cos(fit.rotation), math.sin(fit.rotation)
+        x, y = fit.tx + ax * c - ay * s, fit.ty + ax * s + ay * c
+        r = self._fix_gate.r
+        when = self._track.t[-1] if self._track.t else -math.inf
+        anchor = Anchor(when, x, y, ekf.wrap_angle(fit.rotation + ath), (r, 0.0, 0.0, r, 0.0, sigma * sigma), None)
+        # the states before now were built on the wrong heading: start again from here
+        self._history.reset(anchor)
+        self._fix_gate.forget()
+        self._restart_window()
+
+    # --- output ---------------------------------------------------------------------------------------
+
+    def _state_at_newest_step(self) -> State:
+        """The state at the newest step, or at the newest anchor when that is later (between two fixes the outputs
+        carry the previous output's state on, step by step)."""
+        history, track = self._history, self._track
+        anchor, newest = history.newest, len(track) - 1
+        cached = self._newest
+        if cached is not None and cached[0] is anchor and cached[1] <= newest:
+            if cached[1] < newest:
+                state = history.carry(cached[2], track.t[cached[1]], cached[1] + 1, newest)
+                self._newest = (anchor, newest, state)
+                return state
+            return cached[2]
+        if newest < 0 or track.t[newest] <= anchor.t:
+            return anchor.state
+        state = history.state_at(anchor, track.t[newest], self._pending)
+        self._newest = (anchor, newest, state)
+        return state
+
+    def pose(self, t: float | None = None) -> PoseEstimate:
+        """The estimate, extrapolated with the twist in force to time t when t is later than the newest input."""
+        when, x, y, th, (vx, vy, wz), p = self._extrapolate(t)
+        age = when - self._last_accept_t
+        return PoseEstimate(when, x, y, th, vx, vy, wz, ekf.cov_full(p), age, self.modes.position)
+
+    def position(self, t: float) -> tuple[float, float, float, ekf.Cov] | None:
+        """x, y, theta and P (upper triangle) of pose(t), or None before a fix placed the position.
+
+        The replay's per-output call: the same numbers as pose(t) without building a PoseEstimate.
+        """
+        if not self.modes.placed:
+            return None
+        _, x, y, th, _, p = self._extrapolate(t)
+        return x, y, th, p
+
+    def _extrapolate(self, t: float | None) -> tuple[float, float, float, float, Twist3, ekf.Cov]:
+        """Time, pose, twist in force and P of the newest state carried forward to t (mean only) when t is later."""
+        newest_step = self._track.t[-1] if self._track.t else -math.inf
+        when = max(newest_step, self._history.newest.t)
+        x, y, th, p = self._state_at_newest_step()
+        u = self._pending()
+        if t is None:
+            t = max(when, self._wheels.last_t)
+        if t > when and math.isfinite(when):
+            vx, vy, wz = u
+            dt = t - when
+            dx, dy, _, _ = ekf.displacement(vx, vy, wz, dt, th, midpoint=True)
+            x, y = x + dx, y + dy
+            th = ekf.wrap_angle(th + wz * dt)
+            when = t
+        return when, x, y, th, u, p
+
+
+__all__ = ["Diagnostics", "Estimator", "PoseEstimate", "PositionMode", "Verdict"]

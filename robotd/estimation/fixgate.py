@@ -1,0 +1,136 @@
+"""The verdict on each IPS fix: seeding, Mahalanobis gating, lock-out recovery, and the IPS noise estimate. Pure.
+
+- Until the position is placed, fixes are held as candidates: `seed_fixes` that agree with each other seed it (a
+  first fix may be an outlier). With none configured (the paper's filter), the first fix is judged like any other.
+- Then a fix is accepted when its NIS is within the chi-square gate (2 dof). Rejected fixes are remembered: when
+  they keep coming for `recovery_min_s` and agree with each other once the odometry motion is removed (as
+  innovations), the position is re-seeded on them (the robot was carried, or the filter drifted); one consistent
+  burst of outliers is too short to do that.
+- The IPS noise variance is estimated from the median of recent innovations (robust to outliers), less what the
+  prediction accounts for, between ips_sigma_m^2 and ips_sigma_max_m^2.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections import deque
+from typing import NamedTuple
+
+from robotd.config.model import EkfConfig
+from robotd.estimation import ekf
+from robotd.estimation.heading import LN4
+from robotd.estimation.modes import Modes, Verdict
+
+Innovation3 = tuple[float, float, float]  # t_meas, innovation x, y
+
+
+class Diagnostics(NamedTuple):
+    """One fix's record: innovation nu, its covariance S (xx, xy, yy), NIS, the gate, the verdict.
+
+    A NamedTuple: immutable, and built several times faster than a frozen dataclass (once per fix).
+    """
+
+    t: float
+    t_meas: float
+    nu: tuple[float, float]
+    s: tuple[float, float, float]
+    nis: float
+    gate: float
+    verdict: Verdict
+    r_m: float
+
+    @property
+    def accepted(self) -> bool:
+        """Whether the fix moved the estimate."""
+        return self.verdict in (Verdict.ACCEPTED, Verdict.SEEDED, Verdict.RECOVERED)
+
+
+class FixGate:
+    """Judges fixes by their innovation; keeps the counters it owns and the IPS noise estimate."""
+
+    def __init__(self, config: EkfConfig, counters: dict[str, int], modes: Modes) -> None:
+        self.config = config
+        self.counters = counters
+        self.modes = modes
+        self.gate = ekf.chi2_gate_2dof(config.gate_probability)
+        self.r_floor = config.ips_sigma_m**2
+        self.r = self.r_floor  # the IPS noise variance in use
+        self.rejected: deque[Innovation3] = deque(maxlen=256)
+        self.candidates: deque[Innovation3] = deque(maxlen=config.seed_fixes)
+        self.innovations: deque[float] = deque(maxlen=31)  # |nu|^2 - (trace(S) - 2 r), for the noise estimate
+        self._ordered: list[float] = []  # the same, sorted
+
+    def judge(self, t_meas: float, inn: ekf.Innovation, r: float) -> Verdict:
+        """Seed, accept, gate or recover: the fix's verdict (and the counters and noise estimate that follow)."""
+        config, counters = self.config, self.counters
+        if not self.modes.placed and config.seed_fixes:
+            self.candidates.append((t_meas, inn.nu_x, inn.nu_y))
+            if len(self.candidates) < config.seed_fixes or not self._agree(list(self.candidates)):
+                return Verdict.SEEDING
+            counters["fixes_seeded"] += 1
+            return Verdict.SEEDED
+        if config.adaptive_ips_noise:
+            self._learn_noise(inn, r)
+        if not config.gating or inn.nis <= self.gate:
+            self.rejected.clear()
+            counters["fixes_accepted"] += 1
+            return Verdict.ACCEPTED
+        self.rejected.append((t_meas, inn.nu_x, inn.nu_y))
+        if self._recoverable():
+            counters["recoveries"] += 1
+            return Verdict.RECOVERED
+        counters["fixes_rejected"] += 1
+        return Verdict.GATED
+
+    def seed_shift(self, verdict: Verdict) -> tuple[float, float]:
+        """Where a SEEDED or RECOVERED verdict moves the beacon: the median innovation of the agreeing fixes."""
+        if verdict is Verdict.RECOVERED:
+            recent = list(self.rejected)[-self.config.recovery_min_fixes :]
+            self.forget()
+        else:
+            recent = list(self.candidates)
+            self.candidates.clear()
+        dx = sorted(e[1] for e in recent)[len(recent) // 2]
+        dy = sorted(e[2] for e in recent)[len(recent) // 2]
+        return dx, dy
+
+    def forget(self) -> None:
+        """Drop the rejected fixes and the innovations: what they were measured against is gone."""
+        self.rejected.clear()
+        self.innovations.clear()
+        self._ordered.clear()
+
+    def _agree(self, innovations: list[Innovation3]) -> bool:
+        """Whether fixes (as innovations, odometry motion removed) all lie close to their median."""
+        mx = sorted(e[1] for e in innovations)[len(innovations) // 2]
+        my = sorted(e[2] for e in innovations)[len(innovations) // 2]
+        tolerance = max(self.config.recovery_agreement_m, 4.0 * math.sqrt(self.r))
+        return all(math.hypot(e[1] - mx, e[2] - my) <= tolerance for e in innovations)
+
+    def _recoverable(self) -> bool:
+        """Rejections persisted long enough, and the latest of them agree with each other."""
+        c = self.config
+        rejected = self.rejected
+        if len(rejected) < c.recovery_min_fixes or rejected[-1][0] - rejected[0][0] < c.recovery_min_s:
+            return False
+        # the rejected fixes of the last recovery_min_s, as innovations (odometry motion removed)
+        newest = rejected[-1][0]
+        recent = [e for e in rejected if newest - e[0] <= c.recovery_min_s]
+        return len(recent) >= c.recovery_min_fixes and self._agree(recent)
+
+    def _learn_noise(self, inn: ekf.Innovation, r: float) -> None:
+        """Track the IPS noise variance as the median innovation, less what the prediction accounts for."""
+        predicted = 0.5 * (inn.s_xx + inn.s_yy) - r  # H P H^T per axis
+        value = (inn.nu_x * inn.nu_x + inn.nu_y * inn.nu_y) / LN4 - predicted
+        window, ordered = self.innovations, self._ordered
+        if len(window) == window.maxlen:
+            del ordered[bisect.bisect_left(ordered, window[0])]
+        window.append(value)
+        bisect.insort(ordered, value)  # the window kept sorted too: its median without sorting it at every fix
+        if len(ordered) >= 5:
+            estimate = ordered[len(ordered) // 2]
+            self.r = min(max(estimate, self.r_floor), self.config.ips_sigma_max_m**2)
+
+
+__all__ = ["Diagnostics", "FixGate", "Verdict"]

@@ -1,0 +1,182 @@
+"""The estimator's short history: the states that fixes left (anchors) on the odometry track, and the state at any
+time since the oldest.
+
+An anchor is the state at one instant (a fix's measurement time, or a restart). The state at a later time t is the
+newest anchor at or before t carried forward through the prediction steps (robotd.estimation.track) one by one: through
+the rest of the step it falls in, across the whole steps after it, then through the part of the step that contains t, or
+beyond the newest step with the twist in force. A fix measured in the past is fused at the anchor it makes there; the
+anchors after it are then made again from their fixes, so a late fix lands exactly where an on-time one would.
+Anchors older than `keep_s` before the newest input are dropped (the newest of them stays: it carries the state).
+Pure.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections.abc import Callable
+from typing import NamedTuple
+
+from robotd.estimation import ekf
+from robotd.estimation.modes import Modes
+from robotd.estimation.track import OdometryTrack, Twist3
+
+State = tuple[float, float, float, ekf.Cov]
+"""x, y, theta and P (upper triangle)."""
+UNKNOWN_HEADING_CORRELATION_S = 0.1  # how long a velocity error from an unknown heading persists: a fix interval
+
+
+class FixRecord(NamedTuple):
+    """What a fix did at its anchor, to do again after a later fix was placed before it.
+
+    `fused`: it was fused (fuse it again); otherwise `seed` says where it moved the beacon (a re-seed), or neither
+    (it was only recorded). A NamedTuple, as Anchor.
+    """
+
+    zx: float
+    zy: float
+    r: float
+    fused: bool
+    seed: tuple[float, float] | None = None
+
+
+class Anchor(NamedTuple):
+    """The state at time t, and the fix that left it there (None for a restart or a carried state).
+
+    A NamedTuple: as immutable as a frozen dataclass, and built several times faster (once or twice per fix).
+    """
+
+    t: float
+    x: float
+    y: float
+    theta: float
+    p: ekf.Cov
+    fix: FixRecord | None
+
+    @property
+    def state(self) -> State:
+        """x, y, theta, P."""
+        return self.x, self.y, self.theta, self.p
+
+
+class Predictor:
+    """Moves a state over part of one step (robotd.estimation.ekf.predict), in the heading mode of
+    robotd.estimation.modes.
+
+    With the heading unknown (power-on anywhere, a robot carried off), odometry says how far the robot went but not in
+    which direction: the state still moves along the guessed heading (right more often than not: robots tend to start
+    facing the map's x axis), but the position's variance grows by the distance squared in every direction and keeps
+    no correlation with the heading, so fixes steer the position freely and the gate does not defend a guess; the
+    heading itself comes from the first whole alignment window.
+    """
+
+    def __init__(self, noise: ekf.ControlNoise, modes: Modes, *, midpoint: bool) -> None:
+        self.noise = noise
+        self.modes = modes
+        self.midpoint = midpoint
+
+    def move(self, state: State, u: Twist3, dt: float) -> State:
+        """The state moved by twist u for dt (> 0), with the process noise of that motion."""
+        vx, vy, wz = u
+        x, y, theta, p = ekf.predict(
+            state[0], state[1], state[2], state[3], vx, vy, wz, dt, self.noise, midpoint=self.midpoint
+        )
+        if self.modes.heading_known:
+            return x, y, theta, p
+        # a velocity error of up to twice the speed, correlated over about one fix interval (each fix re-anchors the
+        # position, so only the motion since the last one is in doubt), as white noise of that density
+        q = 4.0 * (vx * vx + vy * vy) * dt * UNKNOWN_HEADING_CORRELATION_S
+        xx, xy, _, yy, _, tt = p
+        return x, y, theta, (xx + q, xy, 0.0, yy + q, 0.0, tt)
+
+
+class History:
+    """Anchors in time order on an odometry track."""
+
+    def __init__(self, track: OdometryTrack, predictor: Predictor, first: Anchor, keep_s: float, *, keep_past: bool):
+        self.track = track
+        self.predictor = predictor
+        self.anchors = [first]
+        self.times = [first.t]
+        self.keep_s = keep_s
+        self.keep_past = keep_past
+
+    @property
+    def newest(self) -> Anchor:
+        """The newest anchor."""
+        return self.anchors[-1]
+
+    @property
+    def start(self) -> float:
+        """The oldest time a fix can be placed at."""
+        return self.times[0]
+
+    def reset(self, anchor: Anchor) -> None:
+        """Forget the past: the history starts again at anchor."""
+        self.anchors = [anchor]
+        self.times = [anchor.t]
+
+    def state_at(self, anchor: Anchor, t: float, pending: Callable[[], Twist3]) -> State:
+        """The state at t >= anchor.t: anchor carried over the steps, then with pending() past the newest."""
+        state, at = anchor.state, anchor.t
+        steps_t = self.track.t
+        b = bisect.bisect_right(steps_t, at)  # the first step ending after the anchor
+        j = bisect.bisect_right(steps_t, t, b) - 1  # the last step ending at or before t
+        if j >= b:
+            state = self.carry(state, at, b, j)
+            at = steps_t[j]
+        return self.move_within(state, at, t, pending)
+
+    def carry(self, state: State, at: float, b: int, j: int) -> State:
+        """The state at `at` (within step b, or at its start) carried to the end of step j >= b."""
+        track, move = self.track, self.predictor.move
+        vx, vy, wz, steps_t = track.vx, track.vy, track.wz, track.t
+        if steps_t[b] > at:
+            state = move(state, (vx[b], vy[b], wz[b]), steps_t[b] - at)
+        for k in range(b + 1, j + 1):
+            state = move(state, (vx[k], vy[k], wz[k]), steps_t[k] - steps_t[k - 1])
+        return state
+
+    def move_within(self, state: State, at: float, t: float, pending: Callable[[], Twist3]) -> State:
+        """The state at `at` moved on to t >= at, within the step that contains t (pending() beyond the newest)."""
+        if t <= at:
+            return state
+        track = self.track
+        k = bisect.bisect_left(track.t, t)
+        u = (track.vx[k], track.vy[k], track.wz[k]) if k < len(track) else pending()
+        return self.predictor.move(state, u, t - at)
+
+    def place(
+        self, k: int, anchor: Anchor, remake: Callable[[State, Anchor], Anchor], pending: Callable[[], Twist3]
+    ) -> None:
+        """Put anchor after index k, then make every later anchor again from its fix with remake(state there, it)."""
+        later = self.anchors[k + 1 :]
+        del self.anchors[k + 1 :], self.times[k + 1 :]
+        self.anchors.append(anchor)
+        self.times.append(anchor.t)
+        for old in later:
+            made = remake(self.state_at(self.anchors[-1], old.t, pending), old)
+            self.anchors.append(made)
+            self.times.append(made.t)
+        if not self.keep_past:
+            del self.anchors[:-1], self.times[:-1]
+
+    def trim(self, now: float, pending: Callable[[], Twist3]) -> int:
+        """Drop anchors older than keep_s before now (keeping the newest of them), and carry a lone old anchor forward
+        so that the steps behind it can go; returns the first step (list index) still needed."""
+        horizon = now - self.keep_s
+        anchors, times = self.anchors, self.times
+        if len(times) > 1 and times[1] <= horizon:
+            cut = bisect.bisect_right(times, horizon) - 1
+            del anchors[:cut], times[:cut]
+        steps_t = self.track.t
+        if times[0] < horizon - self.keep_s and steps_t:
+            # a long outage: carry the base anchor to the newest step before the horizon (what it would be there)
+            j = bisect.bisect_right(steps_t, horizon) - 1
+            if j >= 0 and steps_t[j] > times[0] and (len(times) == 1 or steps_t[j] < times[1]):
+                x, y, th, p = self.state_at(anchors[0], steps_t[j], pending)
+                anchors[0] = Anchor(steps_t[j], x, y, th, p, None)
+                times[0] = steps_t[j]
+        return max(bisect.bisect_right(steps_t, times[0]) - 1, 0)
+
+
+__all__ = ["Anchor", "FixRecord", "History", "Predictor", "State"]

@@ -1,0 +1,1 @@
+"""robotd.logs."""

@@ -1,0 +1,277 @@
+"""Replay a sensor log through odometry alone, the paper's filter and robotd's filter, and score them against truth.
+
+Every method sees the same events in arrival order; an estimate is taken every `OUTPUT_PERIOD_S` of log time (at
+the first event at least that long after the previous estimate: the daemon's pose stream), from the events that
+arrived until then (causal). Odometry alone is given the
+true initial pose (its heading fitted to the first metre of truth when truth has none): the most favourable start,
+so that it is a fair baseline. The filters start from the configuration. The baselines exist only to be scored: a
+log without truth runs robotd's filter alone (their tracks stay empty).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from robotd import kinematics
+from robotd.config.model import RobotdConfig, paper_preset
+from robotd.estimation import ekf
+from robotd.estimation.ekf import Cov, wrap_angle
+from robotd.estimation.estimator import Diagnostics, Estimator
+from robotd.estimation.heading import fit_rotation
+from robotd.estimation.wheelsteps import PERIOD_SLACK_S
+from robotd.logs.sensorlog import IpsFix, IpsLost, SensorLog, Truth, TwistSample, Wheels
+from robotd.offline.estimates import write_estimates
+from robotd.offline.metrics import ErrorStats, Trajectory, fixes_trajectory, score
+
+OUTPUT_PERIOD_S = 0.05  # the daemon's default pose rate (pose_socket.rate_hz: 20)
+METHODS = ("odometry", "ips", "paper_ekf", "ekf")
+
+
+@dataclass(slots=True)
+class _Estimates:
+    """A method's estimates as they are taken: columns, and the covariances (P's upper triangle) of the filters."""
+
+    t: list[float] = field(default_factory=list)
+    x: list[float] = field(default_factory=list)
+    y: list[float] = field(default_factory=list)
+    theta: list[float] = field(default_factory=list)
+    cov: list[ekf.Cov] = field(default_factory=list)
+
+    def append(self, t: float, estimate: tuple[float, float, float, ekf.Cov | None]) -> None:
+        """Add the estimate (x, y, theta, P or None) at t."""
+        x, y, theta, p = estimate
+        self.t.append(t)
+        self.x.append(x)
+        self.y.append(y)
+        self.theta.append(theta)
+        if p is not None:
+            self.cov.append(p)
+
+    def trajectory(self) -> Trajectory:
+        """The poses as a Trajectory."""
+        return Trajectory.of(self.t, self.x, self.y, self.theta)
+
+
+@dataclass(slots=True)
+class ReplayResult:
+    """What a replay produced: every method's estimates and score, robotd's covariances, counters and problems.
+
+    Without truth in the log, `paper` and `odometry` are empty and `metrics` is None.
+    """
+
+    ekf: Trajectory
+    ekf_cov: list[Cov]  # P's upper triangle, one per estimate of robotd's filter
+    paper: Trajectory
+    odometry: Trajectory
+    fixes: list[tuple[float, float, float]]
+    metrics: dict[str, ErrorStats | None] | None
+    counters: dict[str, int]
+    diagnostics: list[Diagnostics]
+    problems: list[str]
+    unknown_types: dict[str, int]
+    geometry: kinematics.Geometry
+    ips_offset: tuple[float, float]
+    counts_per_rev: int
+
+
+def robot_from_log(
+    log: SensorLog, config: RobotdConfig
+) -> tuple[kinematics.Geometry, tuple[float, float], int, list[str]]:
+    """Geometry, beacon offset and counts per turn: the configuration, overridden by the log's meta.robot."""
+    robot = log.meta.robot
+    problems: list[str] = []
+
+    def number(key: str, default: float, low: float, high: float) -> float:
+        # bounds no robot leaves: a log's meta is data, and 1e300 or 0.5 counts a turn would wreck the replay
+        value = robot.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int | float) or not low <= value <= high:
+            problems.append(
+                f"meta.robot.{key}: must be a number from {low:g} to {high:g}, got {value!r}; using {default}"
+            )
+            return default
+        return float(value)
+
+    geometry = kinematics.Geometry(
+        number("wheel_radius", config.robot.wheel_radius_m, 1e-3, 10.0),
+        number("lx", config.robot.lx_m, 1e-3, 100.0),
+        number("ly", config.robot.ly_m, 1e-3, 100.0),
+    )
+    cpr = int(number("counts_per_rev", config.encoders.counts_per_rev, 1.0, 1e9))
+    offset = config.robot.ips_offset_m
+    raw = robot.get("ips_offset", list(offset))
+    if (
+        isinstance(raw, list)
+        and len(raw) == 2
+        and all(isinstance(v, int | float) and not isinstance(v, bool) and abs(v) <= 100.0 for v in raw)
+    ):
+        offset = (float(raw[0]), float(raw[1]))
+    else:
+        problems.append(
+            f"meta.robot.ips_offset: must be a list of 2 numbers within ±100, got {raw!r}; using {list(offset)}"
+        )
+    return geometry, offset, cpr, problems
+
+
+def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
+    """Run the three methods over a parsed log, event by event through the daemon's Estimator, and score them when
+    the log holds truth (robotd's filter alone without).
+
+    Odometry alone is an Estimator that is never given a fix, started at the origin and placed on the true start.
+    """
+    geometry, offset, cpr, problems = robot_from_log(log, config)
+    events = log.events
+    truth_samples = [(e.t, e.x, e.y, e.theta) for e in events if isinstance(e, Truth)]
+    truth = Trajectory.from_samples(truth_samples) if truth_samples else None
+    scored = truth is not None  # the baselines exist only to be scored
+    robotd = Estimator(config.ekf, geometry, offset, cpr)
+    paper = Estimator(paper_preset(config.ekf), geometry, offset, cpr) if scored else None
+    odometry = None
+    if scored:
+        odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later
+        odometry = Estimator(odo_config, geometry, offset, cpr)
+    filters = tuple(est for est in (robotd, paper, odometry) if est is not None)
+    taken = (_Estimates(), _Estimates(), _Estimates())  # robotd's, the paper's, odometry's
+    outputs = [(taken[0], robotd)] + ([(taken[1], paper)] if paper is not None else [])
+    # an output every OUTPUT_PERIOD_S of input time (wheel samples, twists; fixes only in a log without inputs)
+    inputs = any(type(e) is Wheels or type(e) is TwistSample for e in events)
+    fixes: list[tuple[float, float, float]] = []
+    diagnostics: list[Diagnostics] = []
+    last_out = -math.inf
+    for event in events:
+        if isinstance(event, Wheels):
+            for est in filters:
+                est.on_wheels(event.t, event.ticks)
+        elif isinstance(event, TwistSample):
+            for est in filters:
+                est.on_twist(event.t, event.vx, event.vy, event.wz)
+        elif isinstance(event, IpsFix):
+            diagnostic = robotd.on_fix(event.t, event.x, event.y, event.t_meas)
+            if diagnostic is not None:
+                diagnostics.append(diagnostic)
+            if paper is not None:
+                paper.on_fix(event.t, event.x, event.y, event.t_meas)
+            if math.isfinite(event.x) and math.isfinite(event.y) and math.isfinite(event.t_meas):
+                fixes.append((event.t_meas, event.x, event.y))
+            if inputs:
+                continue
+        else:
+            if isinstance(event, IpsLost):
+                robotd.on_fix_lost(event.t)
+                if paper is not None:
+                    paper.on_fix_lost(event.t)
+            continue
+        t = event.t
+        if t - last_out >= OUTPUT_PERIOD_S - PERIOD_SLACK_S:
+            last_out = t
+            for estimates, est in outputs:
+                position = est.position(t)
+                if position is not None:
+                    estimates.append(t, position)
+            if odometry is not None:  # never placed by a fix: the initial pose carried
+                pose = odometry.pose(t)
+                taken[2].append(t, (pose.x, pose.y, pose.theta, None))
+    _place_odometry(taken[2], truth)
+    ours, papers, odometry_alone = (estimates.trajectory() for estimates in taken)
+    metrics = None
+    if truth is not None:
+        metrics = {
+            "odometry": score(truth, odometry_alone),
+            "ips": score(truth, fixes_trajectory(fixes, offset, truth)),
+            "paper_ekf": score(truth, papers),
+            "ekf": score(truth, ours),
+        }
+    return ReplayResult(
+        ekf=ours,
+        ekf_cov=taken[0].cov,
+        paper=papers,
+        odometry=odometry_alone,
+        fixes=fixes,
+        metrics=metrics,
+        counters=dict(robotd.counters),
+        diagnostics=diagnostics,
+        problems=list(log.problems) + problems,
+        unknown_types=dict(log.unknown_types),
+        geometry=geometry,
+        ips_offset=offset,
+        counts_per_rev=cpr,
+    )
+
+
+def _place_odometry(odometry: _Estimates, truth: Trajectory | None) -> None:
+    """Put the odometry track, computed from (0, 0, 0), on the true initial pose (evaluation only: the filters never
+    see truth); without a true heading, turned by the rotation that best lays its first metre onto the truth."""
+    if not odometry.t or truth is None:
+        return
+    x0, y0, th0, _ = truth.at(np.array(odometry.t[:1]))
+    theta0 = float(th0[0])
+    if not math.isfinite(theta0):
+        travelled = 0.0
+        end = 1
+        while end < len(odometry.t) and travelled < 1.0:
+            travelled += math.hypot(odometry.x[end] - odometry.x[end - 1], odometry.y[end] - odometry.y[end - 1])
+            end += 1
+        tx, ty, _, _ = truth.at(np.array(odometry.t[:end]))
+        theta0 = fit_rotation(odometry.x[:end], odometry.y[:end], tx.tolist(), ty.tolist())[0]
+    c, s = math.cos(theta0), math.sin(theta0)
+    for i, (x, y) in enumerate(zip(odometry.x, odometry.y, strict=True)):
+        odometry.x[i], odometry.y[i] = float(x0[0]) + x * c - y * s, float(y0[0]) + x * s + y * c
+        odometry.theta[i] = wrap_angle(odometry.theta[i] + theta0)
+
+
+def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
+    """Write estimates.jsonl (robotd's filter) and, with truth, metrics.json; returns the paths written."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = [out_dir / "estimates.jsonl"]
+    e = result.ekf
+    with open(written[0], "wb") as stream:
+        write_estimates(
+            stream, zip(e.t.tolist(), e.x.tolist(), e.y.tolist(), e.theta.tolist(), result.ekf_cov, strict=True)
+        )
+    if result.metrics is not None:
+        metrics = {name: (stats.as_dict() if stats is not None else None) for name, stats in result.metrics.items()}
+        written.append(out_dir / "metrics.json")
+        written[-1].write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
+    return written
+
+
+def format_table(result: ReplayResult) -> str:
+    """The short table printed by `robotd replay`."""
+    lines = []
+    if result.metrics is not None:
+        lines.append(
+            f"{'method':10s} {'rmse_m':>8s} {'max_m':>8s} {'final_m':>8s} {'median_m':>9s} {'heading_deg':>11s}"
+        )
+        for name in METHODS:
+            stats = result.metrics.get(name)
+            if stats is None:
+                lines.append(f"{name:10s} {'-':>8s}")
+                continue
+            heading = f"{stats.heading_rmse_deg:11.2f}" if stats.heading_rmse_deg is not None else f"{'-':>11s}"
+            figures = f"{stats.rmse_m:8.3f} {stats.max_m:8.3f} {stats.final_m:8.3f} {stats.median_m:9.3f}"
+            lines.append(f"{name:10s} {figures} {heading}")
+    c = result.counters
+    lines.append(
+        f"fixes {c['fixes']}: accepted {c['fixes_accepted']}, rejected {c['fixes_rejected']}, "
+        f"recoveries {c['recoveries']}, heading re-aligned {c['heading_realigned']}, lost {c['fixes_lost']}, "
+        f"late {c['late_fixes']}, too old {c['fixes_too_old']}, "
+        f"dropped {c['dropped_non_finite'] + c['dropped_out_of_order']}"
+    )
+    if result.unknown_types:
+        lines.append("unknown event types: " + ", ".join(f"{k} x{v}" for k, v in sorted(result.unknown_types.items())))
+    return "\n".join(lines)
+
+
+__all__ = [
+    "METHODS",
+    "ReplayResult",
+    "format_table",
+    "replay",
+    "robot_from_log",
+    "write_outputs",
+]
