@@ -1,1 +1,5 @@
-"""drivers.pigpiod."""
+"""pigpiod: its socket protocol (sans-I/O), the asyncio client, the notification stream and the deadman script.
+
+Public API: `protocol` (Cmd, CommandDecoder, REPORT_DTYPE), `client` (PigpioLink, PigpiodUnavailableError, probe),
+`notifications`, `deadman` (PigpioDeadman, find_deadmen).
+"""
