@@ -28,6 +28,7 @@ from typing import Protocol
 
 import numpy as np
 
+from drivers.backoff import Backoff
 from drivers.pigpiod.client import PigpioCommandError, PigpiodUnavailableError, PigpioLink, open_notifications
 from drivers.pigpiod.notifications import SequenceGaps, TickClock
 from drivers.pigpiod.protocol import REPORT_SIZE, Cmd, Mode, Pull, decode_reports
@@ -39,6 +40,7 @@ log = logging.getLogger("robotd.encoders")
 DECODE_BATCH_BYTES = 1 << 16
 """Reports gathered before decoding without waiting for the next publication (5461 reports)."""
 RESYNC_PERIOD_S = 5.0
+FIRST_RETRY_S = 0.05
 """How often the tick-to-monotonic map is re-anchored (follows drift between pigpio's and the kernel's clocks)."""
 
 
@@ -176,7 +178,7 @@ class PigpioEncoders:
         self, link: PigpioLink, notifications: tuple[int, asyncio.StreamReader, asyncio.StreamWriter]
     ) -> None:
         """Read the stream; when it breaks, reconnect with backoff."""
-        backoff = 0.05
+        backoff = Backoff(FIRST_RETRY_S, self._pigpiod.reconnect_max_s)
         while True:
             try:
                 async with asyncio.TaskGroup() as tasks:
@@ -193,8 +195,7 @@ class PigpioEncoders:
                 notifications[2].close()
                 await link.close()
             while True:
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, self._pigpiod.reconnect_max_s)
+                await asyncio.sleep(backoff.next_delay())
                 try:
                     # bounded as a whole: a pigpiod that accepts but stalls must not hold the encoders forever
                     async with asyncio.timeout(4 * self._pigpiod.connect_timeout_s):
@@ -203,7 +204,7 @@ class PigpioEncoders:
                     log.debug("encoders: pigpiod still unavailable: %s", error)
                     continue
                 self._reconnects += 1
-                backoff = 0.05
+                backoff.reset()
                 log.info("encoder stream from pigpiod restored")
                 break
 

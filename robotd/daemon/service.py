@@ -35,6 +35,7 @@ from typing import Any, TextIO
 
 import pigpio
 
+from drivers.backoff import Backoff
 from drivers.marvelmind.events import Event as MarvelmindEvent
 from drivers.marvelmind.events import FixUnavailable, Position
 from drivers.marvelmind.reader import MarvelmindReader
@@ -61,6 +62,7 @@ log = logging.getLogger("robotd")
 ZERO = (0.0, 0.0, 0.0, 0.0)
 STOP = Twist(0.0, 0.0, 0.0)
 STATUS_PERIOD_S = 1.0
+MOTORS_FIRST_RETRY_S = 0.2
 UNKNOWN_SPEEDS = (math.nan, math.nan, math.nan, math.nan)
 
 # What the world can do to a running daemon: a device, a socket or pigpiod gone, a command refused. Logged in one line;
@@ -323,14 +325,13 @@ class Daemon:
             await self._reconnect_motors()
 
     async def _reconnect_motors(self) -> None:
-        delay = 0.2
+        backoff = Backoff(MOTORS_FIRST_RETRY_S, self.config.pigpiod.reconnect_max_s)
         while self.motors is None:
-            await asyncio.sleep(delay)
+            await asyncio.sleep(backoff.next_delay())
             try:
                 await self._connect_motors()
             except Exception as error:  # noqa: BLE001 - keep trying with backoff until pigpiod is back
                 log.debug("pigpiod still unavailable: %s", error)
-                delay = min(delay * 2.0, self.config.pigpiod.reconnect_max_s)
                 continue
             # only a command that arrives from now on drives the motors again
             self._motors_ready_after = self.clock()

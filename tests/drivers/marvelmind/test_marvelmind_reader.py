@@ -14,9 +14,10 @@ from pathlib import Path
 
 import pytest
 
+from drivers.backoff import Backoff
 from drivers.marvelmind.events import Event, Position
 from drivers.marvelmind.frames import encode_position_mm
-from drivers.marvelmind.reader import Backoff, LinkState, MarvelmindReader, resolve_device
+from drivers.marvelmind.reader import LinkState, MarvelmindReader, resolve_device
 from robotd.config.model import MarvelmindConfig
 
 pytestmark = pytest.mark.timeout(20)
