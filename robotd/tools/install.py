@@ -20,20 +20,8 @@ from robotd.config import parse
 from robotd.schema import ConfigError
 from robotd.teleop import load_key
 from robotd.tools.host import Board
-from robotd.tools.install_steps import (
-    Directory,
-    File,
-    Group,
-    InstallError,
-    KeyFile,
-    Kind,
-    Ownership,
-    Require,
-    State,
-    Step,
-    Target,
-    User,
-)
+from robotd.tools.install_files import Directory, File, KeyFile, Ownership
+from robotd.tools.install_steps import Group, InstallError, Kind, Require, State, Step, Target, User
 from robotd.tools.install_system import (
     DaemonReload,
     UdevReload,

@@ -8,6 +8,7 @@ device tree's model string. Nothing here touches the running system: the tools g
 from __future__ import annotations
 
 import configparser
+import io
 import os
 import shutil
 import stat
@@ -19,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from robotd.cli import main
+from robotd.commands.install import ask_beacon_serial
 from robotd.teleop import check_key_file
 from robotd.tools.host import Board, board_of, serial_devices, serial_of, serial_problem
 from robotd.tools.install import Options, install, plan, render_unit, udev_rule
@@ -376,3 +378,15 @@ def test_the_udev_rule_matches_the_beacon_by_serial() -> None:
     assert match.startswith('SUBSYSTEM=="tty", ATTRS{idVendor}=="0483"')
     assert f'ATTRS{{serial}}=="{SERIAL}"' in match
     assert 'GROUP="dialout", MODE="0660"' in match
+
+
+def test_the_beacon_is_picked_from_the_serial_devices_by_id(tmp_path: Path) -> None:
+    by_id = tmp_path / "dev/serial/by-id"
+    by_id.mkdir(parents=True)
+    (by_id / "usb-FTDI_FT232R_USB_UART_A50285BI-if00-port0").symlink_to("../../ttyUSB0")
+    (by_id / f"usb-STMicroelectronics_STM32_Virtual_ComPort_{SERIAL}-if00").symlink_to("../../ttyACM0")
+    shown = io.StringIO()
+    assert ask_beacon_serial(tmp_path, io.StringIO("2\n"), shown) == SERIAL
+    assert f"2) usb-STMicroelectronics_STM32_Virtual_ComPort_{SERIAL}-if00 -> ../../ttyACM0" in shown.getvalue()
+    assert ask_beacon_serial(tmp_path, io.StringIO("\n"), io.StringIO()) is None  # skipped: no rule
+    assert ask_beacon_serial(tmp_path / "none", io.StringIO("1\n"), io.StringIO()) is None
