@@ -15,7 +15,9 @@ import tty
 from pathlib import Path
 
 import pytest
-from marvelmind_support import FIXTURES, REPO_ROOT, capture
+from marvelmind_support import capture
+from paths import MARVELMIND_FIXTURES as FIXTURES
+from paths import REPO as REPO_ROOT
 
 from drivers.marvelmind.frames import encode_position_mm
 from robotd.cli import main

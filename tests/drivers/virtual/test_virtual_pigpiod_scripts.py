@@ -4,7 +4,7 @@ stopping and deleting, the language's semantics on hand-written scripts, and wha
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import pigpio
@@ -12,20 +12,6 @@ import pytest
 
 from drivers.pigpiod.protocol import Err, Mode
 from drivers.virtual.pigpiod import VirtualPigpiod
-
-
-@pytest.fixture
-def server() -> Iterator[VirtualPigpiod]:
-    with VirtualPigpiod() as running:
-        yield running
-
-
-@pytest.fixture
-def pi(server: VirtualPigpiod) -> Iterator[Any]:
-    client = pigpio.pi("127.0.0.1", server.port, show_errors=False)
-    assert client.connected
-    yield client
-    client.stop()
 
 
 def wait_until(condition: Callable[[], bool], timeout_s: float = 5.0) -> None:

@@ -3,10 +3,6 @@ the pins left driven low (never floating inputs) when the outputs close."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
-import pytest
-
 from drivers.pigpiod.protocol import Mode
 from drivers.virtual.l298 import Channel, bridge_rule_violations
 from drivers.virtual.pigpiod import VirtualPigpiod
@@ -24,12 +20,6 @@ REVERSE = (-0.4, -0.4, -0.4, -0.4)
 STOP = (0.0, 0.0, 0.0, 0.0)
 LATERAL = (-0.5, 0.5, 0.5, -0.5)
 ROTATE = (-0.3, 0.3, -0.3, 0.3)
-
-
-@pytest.fixture
-def server() -> Iterator[VirtualPigpiod]:
-    with VirtualPigpiod() as running:
-        yield running
 
 
 def write(t: float, gpio: int, level: int, duty: float) -> PinWrite:

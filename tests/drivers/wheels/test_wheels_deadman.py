@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import pigpio
@@ -30,20 +30,6 @@ ENABLES, DIRECTIONS = enable_and_direction_pins(MOTORS)
 PINS = [*ENABLES, *DIRECTIONS]
 TIMEOUT_S = 0.3
 PERIOD_S = 0.02
-
-
-@pytest.fixture
-def server() -> Iterator[VirtualPigpiod]:
-    with VirtualPigpiod() as running:
-        yield running
-
-
-@pytest.fixture
-def pi(server: VirtualPigpiod) -> Iterator[Any]:
-    client = pigpio.pi("127.0.0.1", server.port, show_errors=False)
-    assert client.connected
-    yield client
-    client.stop()
 
 
 def drive(pi: Any) -> None:

@@ -7,11 +7,11 @@ import signal
 import socket
 import subprocess
 import sys
-from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from paths import REPO
 from wheels_support import wait_until
 
 from drivers.pigpiod.client import PigpiodUnavailableError
@@ -21,14 +21,7 @@ from drivers.wheels.motors import GpiozeroMotors, command_duty, stop_all_motors,
 from robotd.cli import main
 from robotd.config.model import MotorsConfig, PigpiodConfig
 
-REPO = Path(__file__).resolve().parents[3]
 SPIN_ARGS = ["--duty", "0.5", "-0.3", "0.2", "0.9", "--seconds", "60"]
-
-
-@pytest.fixture
-def server() -> Iterator[VirtualPigpiod]:
-    with VirtualPigpiod() as running:
-        yield running
 
 
 def outputs(server: VirtualPigpiod, motors: MotorsConfig) -> list[tuple[float, int, int]]:

@@ -11,7 +11,6 @@ import subprocess
 import sys
 import threading
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -19,6 +18,7 @@ import pigpio
 import pytest
 from gpiozero import DigitalInputDevice, DigitalOutputDevice, PWMOutputDevice
 from gpiozero.pins.pigpio import PiGPIOFactory
+from paths import REPO
 from wheels_support import wait_until
 
 from drivers.pigpiod.protocol import COMMAND, REPORT_SIZE, Cmd, decode_reports, decode_result, encode_command
@@ -209,7 +209,7 @@ def test_drive_levels_only_moves_input_pins_of_the_mask(server: VirtualPigpiod, 
 
 
 def test_robotd_vpigpiod_serves_alone_until_sigterm() -> None:
-    repo = Path(__file__).resolve().parents[3]
+    repo = REPO
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]

@@ -9,13 +9,12 @@ from pathlib import Path
 
 import pytest
 import yaml
+from paths import REPO
 
 from robotd.cli import EX_CONFIG, main
 from robotd.config.model import RobotdConfig, config_reference, load, parse
 from robotd.config.schema import ConfigError
 from robotd.readme import current
-
-REPO = Path(__file__).resolve().parents[3]
 
 
 def problems_of(text: str) -> list[str]:

@@ -13,12 +13,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from paths import REPO
 
 from robotd.cli import EX_CONFIG, main
 from robotd.config.schema import ConfigError
 from robotd.daemon.teleop import load_key
 
-REPO = Path(__file__).resolve().parents[3]
 KEY = b"0123456789abcdef0123456789abcdef"
 
 pytestmark = pytest.mark.timeout(10)

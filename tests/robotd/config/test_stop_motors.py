@@ -15,6 +15,7 @@ from typing import Any
 
 import pigpio
 import pytest
+from paths import REPO
 
 from drivers.pigpiod.protocol import Mode
 from drivers.virtual.pigpiod import VirtualPigpiod
@@ -22,7 +23,6 @@ from robotd.cli import main
 from robotd.config.model import WHEELS, MotorsConfig, PigpiodConfig
 from robotd.config.motorpins import read_stop_targets
 
-REPO = Path(__file__).resolve().parents[3]
 DEFAULT_PINS = [getattr(MotorsConfig().wheels, wheel) for wheel in WHEELS]
 # front_left moved to pins 7, 8, 9: a file read correctly stops these, not the built-in 12, 16, 20
 CUSTOM_MOTORS = "motors:\n  wheels:\n    front_left: {enable: 7, in1: 8, in2: 9}\n"
@@ -30,12 +30,6 @@ CUSTOM_PINS = [(7, 8, 9)] + [(p.enable, p.in1, p.in2) for p in DEFAULT_PINS[1:]]
 BUILT_IN_PINS = [(p.enable, p.in1, p.in2) for p in DEFAULT_PINS]
 
 pytestmark = pytest.mark.timeout(30)
-
-
-@pytest.fixture
-def server() -> Iterator[VirtualPigpiod]:
-    with VirtualPigpiod() as running:
-        yield running
 
 
 @pytest.fixture

@@ -9,7 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[3]
+from paths import REPO as ROOT
+
 UNITS = ROOT / "systemd"
 INSTALLED_ROBOTD = "/opt/robotd/.venv/bin/robotd"
 INSTALLED_PIGPIOD = "/usr/bin/pigpiod"

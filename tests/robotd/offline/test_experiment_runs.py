@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from paths import REPO
 
 from robotd import cli
 from robotd.config.model import RobotdConfig, load
@@ -18,7 +19,6 @@ from robotd.offline.experiment_report import LABELS, results_markdown, write_res
 from robotd.offline.metrics import ErrorStats
 from robotd.offline.replay import METHODS, replay
 
-REPO = Path(__file__).resolve().parents[3]
 SIM_CONFIG = REPO / "config" / "sim.yaml"
 LIBRSF = REPO.parent / "shared" / "datasets" / "librsf_labyrinth_uwb"
 SEEDS = (1, 2)

@@ -10,6 +10,7 @@ from typing import Any
 import msgspec
 import numpy as np
 import pytest
+from paths import SHARED
 from sim_logs import sim_config, simulated, simulated_text
 
 from robotd import cli
@@ -20,7 +21,6 @@ from robotd.offline import librsf
 from robotd.offline.estimates import read_estimates
 from robotd.offline.replay import OUTPUT_PERIOD_S, replay, write_outputs
 
-SHARED = Path(__file__).resolve().parents[3].parent / "shared"
 LIBRSF = SHARED / "datasets" / "librsf_labyrinth_uwb"
 
 # The virtual robot's fixes at 4-16 Hz with 50-150 ms latency, 2-4 cm noise, bursts of outliers thrown up to 4.6 m,

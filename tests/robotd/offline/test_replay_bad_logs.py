@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from paths import REPO
 
 from robotd import cli
 from robotd.config.model import load
@@ -19,9 +20,6 @@ from robotd.sim.offline import simulate
 
 EX_DATAERR, EX_NOINPUT, EX_CANTCREAT = 65, 66, 73
 INSERT_AT = 60  # a wheel sample's place in the log, after the start
-
-
-REPO = Path(__file__).resolve().parents[3]
 
 
 @functools.cache

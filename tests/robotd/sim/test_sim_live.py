@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 import serial_asyncio_fast
-from sim_support import REPO
+from paths import REPO
 
 from drivers.marvelmind.events import FixUnavailable, Position
 from drivers.marvelmind.protocol import MarvelmindParser

@@ -10,7 +10,8 @@ import time
 from pathlib import Path
 
 import pytest
-from process_support import REPO, processes_mentioning
+from paths import REPO
+from process_support import processes_mentioning
 
 
 def demo(out: Path, *extra: str) -> subprocess.Popen[str]:

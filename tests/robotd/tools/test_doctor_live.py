@@ -15,6 +15,7 @@ from typing import Any
 
 import pigpio
 import pytest
+from paths import REPO
 
 from drivers.pigpiod.protocol import Mode
 from drivers.virtual.pigpiod import VirtualPigpiod
@@ -25,7 +26,6 @@ from robotd.tools.doctor_pigpio import PigpioWheelDrive, pin_modes, reach
 from robotd.tools.gpio_backend import BACKEND_NAMES, BackendUnavailableError, backends
 from robotd.tools.teleop_client import UdpLink
 
-REPO = Path(__file__).resolve().parents[3]
 START_TIMEOUT_S = 20.0
 
 

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import pytest
+from paths import REPO
 
 from robotd.cli import main
 from robotd.commands.install import ask_beacon_serial
@@ -26,7 +27,6 @@ from robotd.tools.host import Board, board_of, serial_devices, serial_of, serial
 from robotd.tools.install import Options, install, plan, render_unit, udev_rule
 from robotd.tools.install_steps import Target
 
-REPO = Path(__file__).resolve().parents[3]
 PACKAGED_PIGPIOD = (
     "[Unit]\nDescription=Daemon required to control GPIO pins via pigpio\n[Service]\nExecStart=/usr/bin/pigpiod\n"
     "ExecStop=/bin/systemctl kill pigpiod\nType=forking\n[Install]\nWantedBy=multi-user.target\n"

@@ -19,13 +19,13 @@ from pathlib import Path
 from typing import Any
 
 import pigpio
+from paths import REPO
 
 from robotd.config.model import WHEELS, MotorPins, RobotdConfig, load
 from robotd.kinematics import Twist
 from robotd.tools.demo import Children, private_config
 from robotd.tools.teleop_client import UdpLink
 
-REPO = Path(__file__).resolve().parents[3]
 SIM_CONFIG = REPO / "config" / "sim.yaml"
 START_TIMEOUT_S = 20.0
 

@@ -4,15 +4,12 @@ from __future__ import annotations
 
 import random
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
+from paths import MARVELMIND_FIXTURES as FIXTURES
 
 from drivers.marvelmind.events import Counters, Event
 from drivers.marvelmind.protocol import MarvelmindParser
-
-REPO_ROOT = Path(__file__).resolve().parents[3]
-FIXTURES = REPO_ROOT / ".." / "shared" / "fixtures" / "marvelmind"
 
 
 def capture(name: str) -> bytes:

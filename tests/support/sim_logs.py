@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import io
-from pathlib import Path
 from typing import Any
+
+from paths import SIM_CONFIG
 
 from robotd.config.model import RobotdConfig, load
 from robotd.logs.sensorlog import SensorLog, parse_lines
 from robotd.sim.offline import simulate
-
-SIM_CONFIG = Path(__file__).resolve().parents[3] / "config" / "sim.yaml"
 
 
 def sim_config(ips_offset_m: tuple[float, float] = (0.0, 0.0), **sim: Any) -> RobotdConfig:

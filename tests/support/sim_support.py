@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 from typing import Any
+
+from paths import REPO
 
 from robotd.config.model import RobotdConfig, load
 from robotd.kinematics import Geometry, forward
 from robotd.logs.sensorlog import Event, Truth, Wheels
-
-REPO = Path(__file__).resolve().parents[3]
 
 
 def sim_config(**sim_overrides: Any) -> RobotdConfig:

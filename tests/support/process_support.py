@@ -8,7 +8,8 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[3]
+from paths import REPO
+
 SIM_CONFIG = REPO / "config" / "sim.yaml"
 
 

@@ -1,0 +1,46 @@
+"""Fixtures shared across the suite: a virtual pigpiod, the real pigpio client connected to it, a beacon pty.
+
+Helpers that tests import by name (`daemon_support`, `paths`, ...) live in tests/support, which pytest puts on the
+import path (pyproject's `pythonpath`); tests import in importlib mode, so no test folder shadows the packages.
+"""
+
+from __future__ import annotations
+
+import os
+import pty
+import tty
+from collections.abc import Iterator
+from typing import Any
+
+import pigpio
+import pytest
+
+from drivers.virtual.pigpiod import VirtualPigpiod
+
+
+@pytest.fixture
+def server() -> Iterator[VirtualPigpiod]:
+    """A virtual pigpiod on a free loopback port, stopped after the test."""
+    with VirtualPigpiod() as running:
+        yield running
+
+
+@pytest.fixture
+def pi(server: VirtualPigpiod) -> Iterator[Any]:
+    """The real `pigpio` client connected to `server`."""
+    client = pigpio.pi("127.0.0.1", server.port, show_errors=False)
+    assert client.connected
+    yield client
+    client.stop()
+
+
+@pytest.fixture
+def beacon_pty() -> Iterator[tuple[int, str]]:
+    """A pseudo-terminal: (master to write frames into, path of the device to read)."""
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    try:
+        yield master, os.ttyname(slave)
+    finally:
+        os.close(master)
+        os.close(slave)
