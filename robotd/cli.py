@@ -29,6 +29,8 @@ COMMAND_MODULES = (
     "robotd.commands.experiment",
     "robotd.commands.run",
     "robotd.commands.demo",
+    "robotd.commands.install",
+    "robotd.commands.doctor",
 )
 
 

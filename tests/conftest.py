@@ -1,4 +1,4 @@
-"""Fixtures shared across the suite: a virtual pigpiod and the real pigpio client connected to it.
+"""Fixtures shared across the suite: a virtual pigpiod, the real pigpio client connected to it, a beacon pty.
 
 Helpers that tests import by name (`daemon_support`, `paths`, ...) live in tests/support, which pytest puts on the
 import path (pyproject's `pythonpath`); tests import in importlib mode, so no test folder shadows the packages.
@@ -6,6 +6,9 @@ import path (pyproject's `pythonpath`); tests import in importlib mode, so no te
 
 from __future__ import annotations
 
+import os
+import pty
+import tty
 from collections.abc import Iterator
 from typing import Any
 
@@ -29,3 +32,15 @@ def pi(server: VirtualPigpiod) -> Iterator[Any]:
     assert client.connected
     yield client
     client.stop()
+
+
+@pytest.fixture
+def beacon_pty() -> Iterator[tuple[int, str]]:
+    """A pseudo-terminal: (master to write frames into, path of the device to read)."""
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    try:
+        yield master, os.ttyname(slave)
+    finally:
+        os.close(master)
+        os.close(slave)

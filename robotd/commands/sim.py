@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from robotd.config.model import load
+from robotd.config.model import WHEELS, load
 from robotd.sim.scenarios import SCENARIOS
 
 DEFAULT_SIM_CONFIG = "config/sim.yaml"
@@ -35,6 +35,22 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         default=None,
         metavar="LOG.jsonl",
         help="sensor log of truth, ticks and fixes (default sim.record_path)",
+    )
+    vhw.add_argument(
+        "--swap-encoders",
+        nargs=2,
+        choices=WHEELS,
+        default=(),
+        metavar="WHEEL",
+        help="wire it wrong: cross these two wheels' encoder cables (for robotd doctor)",
+    )
+    vhw.add_argument(
+        "--reverse-motor",
+        action="append",
+        choices=WHEELS,
+        default=[],
+        metavar="WHEEL",
+        help="wire it wrong: swap this wheel's motor leads (repeatable; for robotd doctor)",
     )
     vhw.set_defaults(handler=run_vhw)
 
@@ -64,13 +80,21 @@ def run_vhw(args: argparse.Namespace) -> int:
     """Run the virtual hardware until interrupted (or for --duration seconds)."""
     import asyncio  # noqa: PLC0415
 
-    from robotd.sim.live import run_virtual_hardware  # noqa: PLC0415
+    from robotd.sim.live import Miswiring, run_virtual_hardware  # noqa: PLC0415
 
     config = load(args.config)
     seed = config.sim.seed if args.seed is None else args.seed
     record = config.sim.record_path if args.record is None else args.record
+    if len(set(args.swap_encoders)) == 1:
+        print("robotd vhw: --swap-encoders needs two different wheels", file=sys.stderr)
+        return 2
+    miswiring = Miswiring.of(args.swap_encoders, args.reverse_motor)
     try:
-        asyncio.run(run_virtual_hardware(config, seed, duration_s=args.duration, record_path=record or None))
+        asyncio.run(
+            run_virtual_hardware(
+                config, seed, duration_s=args.duration, record_path=record or None, miswiring=miswiring
+            )
+        )
     except KeyboardInterrupt:
         return 0
     return 0

@@ -27,7 +27,8 @@ import dataclasses
 import math
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
@@ -44,6 +45,34 @@ from robotd.sim.world import World, build_world
 
 STEP_S = 0.005
 """Period of the live loop: the duties' reaction time and the encoder edges' batching."""
+
+
+@dataclass(frozen=True, slots=True)
+class Miswiring:
+    """Wiring faults of the virtual robot, for `robotd doctor` to find (the configuration does not know them)."""
+
+    encoder_of: tuple[int, int, int, int] = (0, 1, 2, 3)
+    """For each wheel's encoder pins, the wheel (index) whose turns reach them: swapped cables cross two."""
+    motor_sign: tuple[int, int, int, int] = (1, 1, 1, 1)
+    """-1 where a motor's leads are swapped: the wheel turns backward when driven forward."""
+
+    @classmethod
+    def of(cls, swap_encoders: Sequence[str] = (), reverse_motors: Sequence[str] = ()) -> Miswiring:
+        """Faults by wheel name: two wheels whose encoder cables are swapped, and the wheels with reversed motors."""
+        encoder_of = list(range(4))
+        if swap_encoders:
+            first, second = (WHEELS.index(name) for name in swap_encoders)
+            encoder_of[first], encoder_of[second] = second, first
+        signs = [-1 if name in reverse_motors else 1 for name in WHEELS]
+        return cls(
+            (encoder_of[0], encoder_of[1], encoder_of[2], encoder_of[3]), (signs[0], signs[1], signs[2], signs[3])
+        )
+
+    def describe(self) -> str:
+        """The faults in words ('' when wired right)."""
+        swapped = [f"{WHEELS[k]} encoder reads {WHEELS[w]}'s wheel" for k, w in enumerate(self.encoder_of) if k != w]
+        reversed_motors = [f"{WHEELS[k]} motor reversed" for k, sign in enumerate(self.motor_sign) if sign < 0]
+        return ", ".join(swapped + reversed_motors)
 
 
 class _Recorder:
@@ -85,9 +114,11 @@ class VirtualHardware:
         start_s: float,
         *,
         clock: Callable[[], float] = time.monotonic,
+        miswiring: Miswiring = Miswiring(),
     ) -> None:
         self.config = config
         self.clock = clock
+        self.miswiring = miswiring
         self.world: World = build_world(config, seed)
         self.pigpiod = pigpiod
         self.marvelmind = marvelmind
@@ -112,7 +143,11 @@ class VirtualHardware:
     def duties(self) -> tuple[float, float, float, float]:
         """The duty each wheel's L298 channel applies now (positive turns the wheel forward)."""
         read = self.pigpiod.pwm_duty
-        d = [read(p.enable) * (read(p.in1) - read(p.in2)) * p.sign for p in self.motor_pins]
+        signs = self.miswiring.motor_sign
+        d = [
+            read(p.enable) * (read(p.in1) - read(p.in2)) * p.sign * s
+            for p, s in zip(self.motor_pins, signs, strict=True)
+        ]
         return (d[0], d[1], d[2], d[3])
 
     def advance(self, until_us: int) -> None:
@@ -145,7 +180,8 @@ class VirtualHardware:
 
     def _drive(self, streams: list[tuple[list[np.ndarray], list[np.ndarray]]]) -> None:
         merged = []
-        for pins, (tick_parts, count_parts) in zip(self.encoder_pins, streams, strict=True):
+        for pins, wheel in zip(self.encoder_pins, self.miswiring.encoder_of, strict=True):
+            tick_parts, count_parts = streams[wheel]
             if tick_parts:
                 positions = pins.sign * np.concatenate(count_parts)
                 words = encoder_words(positions, pins.a, pins.b)
@@ -197,6 +233,7 @@ async def run_virtual_hardware(
     record_path: str | None = None,
     announce: Callable[[str], None] = print,
     clock: Callable[[], float] = time.monotonic,
+    miswiring: Miswiring = Miswiring(),
 ) -> VirtualHardware:
     """Serve the virtual robot until cancelled, SIGTERM/SIGINT, or duration_s; returns the final state."""
     pigpiod = VirtualPigpiod(config.pigpiod.host, config.pigpiod.port)
@@ -211,7 +248,7 @@ async def run_virtual_hardware(
             loop.add_signal_handler(signum, stop.set)
             handled.append(signum)
     start = clock()
-    hardware = VirtualHardware(config, seed, pigpiod, marvelmind, start, clock=clock)
+    hardware = VirtualHardware(config, seed, pigpiod, marvelmind, start, clock=clock, miswiring=miswiring)
 
     def plug(action: Callable[[], None], what: str) -> None:
         action()
@@ -227,6 +264,8 @@ async def run_virtual_hardware(
     announce(f"robotd vhw: pigpiod {pigpiod.host}:{pigpiod.port}")
     announce(f"robotd vhw: marvelmind {marvelmind.slave_path} (linked at {config.marvelmind.device})")
     announce(f"robotd vhw: record {record_path or '(none)'}")
+    if miswiring.describe():
+        announce(f"robotd vhw: wired wrong on purpose: {miswiring.describe()}")
     announce(f"robotd vhw: seed {seed}, running{'' if duration_s is None else f' for {duration_s:g} s'}")
     try:
         deadline = math.inf if duration_s is None else start + duration_s
