@@ -58,7 +58,6 @@ class MarvelmindHealth:
     state: LinkState
     connected: bool
     stale: bool  # no valid fix for longer than stale_after_s (or never one)
-    fix_age_s: float | None  # since the arrival of the last valid fix; None before the first
     device: str | None  # the path that is (or was last) open
 
 
@@ -118,14 +117,13 @@ class MarvelmindReader:
         return self.parser.counters
 
     def health(self, now: float | None = None) -> MarvelmindHealth:
-        """Connected? Stale? Age of the last valid fix, at `now` (default: the reader's clock)."""
+        """Connected? Stale (no valid fix arrived within stale_after_s)? At `now` (default: the reader's clock)."""
         now = self._clock() if now is None else now
         age = None if self._last_fix_arrival is None else now - self._last_fix_arrival
         return MarvelmindHealth(
             state=self._state,
             connected=self._state is LinkState.STREAMING,
             stale=age is None or age > self.config.stale_after_s,
-            fix_age_s=age,
             device=self._device,
         )
 

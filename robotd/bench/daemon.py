@@ -4,8 +4,8 @@ Theory of operation. `robotd vhw` and `robotd run` run as child processes on a p
 fixes at 16 Hz. Five pose clients read the Unix socket from one thread that stamps each line on arrival.
 
 - Fix to pose: the vhw records the monotonic time just before it writes each frame to the pseudo-terminal; each
-  pose carries `fix_t`, the arrival of the newest fix given to the filter. A fix's latency is the first arrival, at
-  a client, of a pose with its `fix_t`, minus the write time of the last frame written before that `fix_t`.
+  pose carries `fix_arrival_t`, the arrival of the newest fix given to the filter. A fix's latency is the first
+  arrival, at a client, of a pose with its `fix_arrival_t`, minus the write time of the last frame written before it.
 - Teleop to duty: from rest (duties exactly zero) one datagram with a new speed is sent, and the rear-right enable
   pin (the last one the daemon writes) is polled with the real `pigpio` client until its duty is non-zero; the
   figure is an upper bound (the end of the poll that saw the change).
@@ -45,6 +45,7 @@ from robotd.bench.flood import flood as flood  # noqa: PLC0414 - re-exported: th
 from robotd.bench.flood import hostile_datagrams as hostile_datagrams  # noqa: PLC0414
 from robotd.bench.flood import udp_queue as udp_queue  # noqa: PLC0414
 from robotd.config.model import RobotdConfig, load
+from robotd.daemon import poseclient
 from robotd.kinematics import Twist
 from robotd.tools.demo import Children, private_config
 from robotd.tools.teleop_client import UdpLink
@@ -109,12 +110,11 @@ class PoseClients(threading.Thread):
         self.selector = selectors.DefaultSelector()
         self.socks = []
         for _ in range(count):
-            sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            sock.connect(path)
+            sock = poseclient.connect(path)
             sock.setblocking(False)
-            self.selector.register(sock, selectors.EVENT_READ, bytearray())
+            self.selector.register(sock, selectors.EVENT_READ, poseclient.LineSplitter())
             self.socks.append(sock)
-        self.first_pose_with_fix: dict[float, float] = {}  # fix_t -> first arrival at any client
+        self.first_pose_with_fix: dict[float, float] = {}  # fix_arrival_t -> first arrival at any client
         self.statuses: list[dict[str, Any]] = []
         self.running = True
 
@@ -130,17 +130,17 @@ class PoseClients(threading.Thread):
                 if not data:
                     self.selector.unregister(key.fileobj)
                     continue
-                buffer: bytearray = key.data
-                buffer += data
-                *lines, rest = buffer.split(b"\n")
-                buffer[:] = rest
-                for line in lines:
-                    self._take(json.loads(line), arrived)
+                splitter: poseclient.LineSplitter = key.data
+                for received in splitter.feed(data, arrived):
+                    self._take(received)
 
-    def _take(self, message: dict[str, Any], arrived: float) -> None:
-        if message["type"] == "pose" and message.get("fix_t") is not None:
-            self.first_pose_with_fix.setdefault(message["fix_t"], arrived)
-        elif message["type"] == "status":
+    def _take(self, received: poseclient.PoseSocketMessage) -> None:
+        message = received.message
+        if message is None:
+            return
+        if received.kind == "pose" and message.get("fix_arrival_t") is not None:
+            self.first_pose_with_fix.setdefault(message["fix_arrival_t"], received.arrived)
+        elif received.kind == "status":
             self.statuses.append(message)
 
     def close(self) -> None:

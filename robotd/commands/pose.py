@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import socket
 import sys
+from collections.abc import Iterable
 from typing import Any, TextIO
 
 from robotd.config.model import load
+from robotd.daemon import poseclient
+from robotd.daemon.poseclient import PoseSocketMessage, unexpected_hello
 from robotd.daemon.posesock import PROTOCOL, PROTOCOL_VERSION
 
 DEFAULT_SOCKET = "/run/robotd/pose.sock"
@@ -46,23 +47,22 @@ def _number(value: Any) -> float:
     return float(value) if isinstance(value, int | float) else math.nan
 
 
-def show(stream: TextIO, out: TextIO, raw: bool, count: int | None) -> int:
-    """Print messages from a line stream until it ends or `count` poses were shown; returns the exit status (1 after
-    an error message from the daemon)."""
+def show(received: Iterable[PoseSocketMessage], out: TextIO, raw: bool, count: int | None) -> int:
+    """Print messages until they end or `count` poses were shown; returns the exit status (1 after an error message
+    from the daemon or an unexpected protocol)."""
     poses = 0
-    for line in stream:
-        try:
-            message = json.loads(line)
-        except json.JSONDecodeError:
-            print(f"robotd pose: skipping a line that is not JSON: {line[:60]!r}", file=sys.stderr)
+    for item in received:
+        message, kind = item.message, item.kind
+        if message is None:
+            print(f"robotd pose: skipping a line that is not a JSON object: {item.line[:60]!r}", file=sys.stderr)
             continue
-        kind = message.get("type") if isinstance(message, dict) else None
         if raw:
-            out.write(line)
+            out.write(item.line)
             out.flush()
         elif kind == "hello":
-            if message.get("protocol") != PROTOCOL or message.get("version") != PROTOCOL_VERSION:
-                print(f"robotd pose: unexpected protocol {message}", file=sys.stderr)
+            problem = unexpected_hello(message)
+            if problem is not None:
+                print(f"robotd pose: {problem}", file=sys.stderr)
                 return 1
             print(f"connected: {PROTOCOL} v{PROTOCOL_VERSION}, {message.get('rate_hz')} Hz", file=out)
         elif kind == "pose":
@@ -83,11 +83,10 @@ def show(stream: TextIO, out: TextIO, raw: bool, count: int | None) -> int:
 def pose(args: argparse.Namespace) -> int:
     """Connect to the pose socket and print what arrives."""
     path = load(args.config).pose_socket.path if args.config else (args.socket or DEFAULT_SOCKET)
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        try:
-            sock.connect(path)
-        except OSError as error:
-            print(f"robotd pose: cannot connect to {path}: {error.strerror or error}", file=sys.stderr)
-            return 1
-        with sock.makefile("r", encoding="utf-8") as stream:
-            return show(stream, sys.stdout, args.json, args.count)
+    try:
+        sock = poseclient.connect(path)
+    except OSError as error:
+        print(f"robotd pose: cannot connect to {path}: {error.strerror or error}", file=sys.stderr)
+        return 1
+    with sock:
+        return show(poseclient.messages(sock), sys.stdout, args.json, args.count)

@@ -405,7 +405,7 @@ class Daemon:
         )
         # robotd's addition to the pose: when the newest fix given to the filter arrived (monotonic s), so a reader
         # can tell which fix a pose contains (and measure the fix-to-pose latency)
-        message["fix_t"] = self._last_fix_arrival
+        message["fix_arrival_t"] = self._last_fix_arrival
         self.pose_server.publish(message)
 
     def _status_message(self, now: float) -> dict[str, Any]:

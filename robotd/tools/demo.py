@@ -19,7 +19,6 @@ file exists: a killed run leaves the file behind.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import signal
 import socket
@@ -36,6 +35,7 @@ from typing import Any, TextIO
 import yaml
 
 from robotd.config.model import RobotdConfig, load
+from robotd.daemon import poseclient
 from robotd.kinematics import Twist
 from robotd.logs import sensorlog
 from robotd.tools.teleop_client import Leg, UdpLink, run_plan, square_plan
@@ -178,24 +178,18 @@ class PoseRecorder(threading.Thread):
     def __init__(self, path: Path, out: Path) -> None:
         """Connect to the pose socket (OSError when nobody accepts there)."""
         super().__init__(name="pose-recorder", daemon=True)
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        try:
-            self.sock.connect(str(path))
-        except OSError:
-            self.sock.close()
-            raise
+        self.sock = poseclient.connect(str(path))
         self.out = out
         self.latest: dict[str, Any] | None = None
         self.count = 0
 
     def run(self) -> None:
         """Copy pose lines until the daemon closes the socket."""
-        with self.sock.makefile("r", encoding="utf-8") as stream, self.out.open("w", encoding="utf-8") as out:
-            for line in stream:
-                message = json.loads(line)
-                if message.get("type") == "pose":
-                    out.write(line)
-                    self.latest = message
+        with self.out.open("w", encoding="utf-8") as out:
+            for received in poseclient.messages(self.sock):
+                if received.kind == "pose":
+                    out.write(received.line)
+                    self.latest = received.message
                     self.count += 1
 
     def close(self) -> None:

@@ -9,9 +9,7 @@ on the pose socket instead. They carry the parser's counters, but not the hedgeh
 
 from __future__ import annotations
 
-import json
 import os
-import socket
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -21,6 +19,7 @@ from drivers.marvelmind.events import Position, Quality
 from drivers.marvelmind.protocol import MarvelmindParser
 from drivers.marvelmind.reader import resolve_device
 from robotd.config.model import MarvelmindConfig
+from robotd.daemon import poseclient
 from robotd.tools.checklist import Finding, failed, passed, skipped
 
 POSITION_CODES = ("0x0001", "0x0011", "0x0081")
@@ -110,18 +109,15 @@ def sample_between(first: Mapping[str, Any], last: Mapping[str, Any]) -> BeaconS
 def listen_daemon(path: str, seconds: float, timeout_s: float) -> BeaconSample:
     """Read the daemon's status messages on its pose socket until two lie `seconds` apart (blocking)."""
     first: dict[str, Any] | None = None
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        sock.settimeout(timeout_s)
-        sock.connect(path)
-        with sock.makefile("r", encoding="utf-8") as stream:
-            for line in stream:
-                message = json.loads(line)
-                if message.get("type") != "status":
-                    continue
-                if first is None:
-                    first = message
-                elif float(message["t"]) - float(first["t"]) >= seconds:
-                    return sample_between(first, message)
+    with poseclient.connect(path, timeout_s) as sock:
+        for received in poseclient.messages(sock):
+            message = received.message
+            if message is None or received.kind != "status":
+                continue
+            if first is None:
+                first = message
+            elif float(message["t"]) - float(first["t"]) >= seconds:
+                return sample_between(first, message)
     raise OSError("robotd closed its pose socket")
 
 

@@ -22,6 +22,7 @@ import pigpio
 from paths import REPO
 
 from robotd.config.model import WHEELS, MotorPins, RobotdConfig, load
+from robotd.daemon import poseclient
 from robotd.kinematics import Twist
 from robotd.tools.demo import Children, private_config
 from robotd.tools.teleop_client import UdpLink
@@ -54,22 +55,20 @@ class PoseTap(threading.Thread):
 
     def __init__(self, path: str) -> None:
         super().__init__(name="pose-tap", daemon=True)
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.connect(path)
+        self.sock = poseclient.connect(path)
         self.poses: list[tuple[float, dict[str, Any]]] = []
         self.statuses: list[dict[str, Any]] = []
         self.start()
 
     def run(self) -> None:
         """Read lines until the daemon hangs up or the tap is closed."""
-        with contextlib.suppress(OSError), self.sock.makefile("r", encoding="utf-8") as stream:
-            for line in stream:
-                arrived = time.monotonic()
-                message = json.loads(line)
-                if message["type"] == "pose":
-                    self.poses.append((arrived, message))
-                elif message["type"] == "status":
-                    self.statuses.append(message)
+        with contextlib.suppress(OSError):
+            for received in poseclient.messages(self.sock):
+                assert received.message is not None, f"the daemon sent a line that is not JSON: {received.line!r}"
+                if received.kind == "pose":
+                    self.poses.append((received.arrived, received.message))
+                elif received.kind == "status":
+                    self.statuses.append(received.message)
 
     @property
     def pose(self) -> dict[str, Any]:

@@ -20,6 +20,7 @@ import pytest
 
 from robotd.cli import main
 from robotd.commands.pose import describe_pose, show
+from robotd.daemon.poseclient import LineSplitter, decode
 from robotd.daemon.posesock import PoseServer, encode, hello_message, pose_message, status_message
 
 
@@ -217,11 +218,9 @@ async def test_robotd_pose_says_why_a_full_daemon_closed_it(
 
 
 def test_robotd_pose_prints_one_line_per_pose() -> None:
-    stream = io.StringIO(
-        "".join(line.decode() for line in (encode(hello_message(20.0, 1.0)), encode(a_pose(1.0)), encode(a_pose(2.0))))
-    )
+    lines = [line.decode() for line in (encode(hello_message(20.0, 1.0)), encode(a_pose(1.0)), encode(a_pose(2.0)))]
     out = io.StringIO()
-    assert show(stream, out, raw=False, count=2) == 0
+    assert show([decode(line, 0.0) for line in lines], out, raw=False, count=2) == 0
     text = out.getvalue()
     assert text.startswith("connected: robotd-pose v1")
     assert text.count("\r") == 2
@@ -230,8 +229,19 @@ def test_robotd_pose_prints_one_line_per_pose() -> None:
 
 
 def test_robotd_pose_refuses_an_unknown_protocol() -> None:
-    stream = io.StringIO(json.dumps({"type": "hello", "protocol": "other", "version": 9}) + "\n")
-    assert show(stream, io.StringIO(), raw=False, count=None) == 1
+    line = json.dumps({"type": "hello", "protocol": "other", "version": 9}) + "\n"
+    assert show([decode(line, 0.0)], io.StringIO(), raw=False, count=None) == 1
+
+
+def test_the_line_splitter_keeps_a_partial_line_and_marks_a_line_that_is_not_json() -> None:
+    splitter = LineSplitter()
+    whole = encode(a_pose(1.0))
+    assert splitter.feed(whole[:10], 1.0) == []
+    first, junk = splitter.feed(whole[10:] + b"not json\n{", 2.0)
+    assert (first.kind, first.arrived, first.message) == ("pose", 2.0, json.loads(whole))
+    assert (junk.message, junk.line) == (None, "not json\n")
+    (last,) = splitter.feed(b'"type": "status"}\n', 3.0)
+    assert last.kind == "status"
 
 
 def test_robotd_pose_on_a_missing_socket_fails_cleanly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
