@@ -29,16 +29,9 @@ NEAR_WRAP = (1 << 32) - 50_000  # a tick 50 ms before pigpio's 32-bit tick wraps
 
 @pytest.fixture
 def server() -> Iterator[VirtualPigpiod]:
+    """The shared `server` fixture's pigpiod, started near the tick wrap (the shared `pi` connects to this one)."""
     with VirtualPigpiod(start_tick=NEAR_WRAP) as running:
         yield running
-
-
-@pytest.fixture
-def pi(server: VirtualPigpiod) -> Iterator[Any]:
-    client = pigpio.pi("127.0.0.1", server.port, show_errors=False)
-    assert client.connected
-    yield client
-    client.stop()
 
 
 @pytest.fixture
