@@ -39,9 +39,48 @@ def module_map(root: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _imports(path: Path) -> set[str]:
+    """The robotd and drivers modules a source file imports, at any depth (`from a import b` counts as a.b)."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.update(f"{node.module}.{alias.name}" for alias in node.names)
+    return {name for name in found if name.split(".")[0] in ("robotd", "drivers")}
+
+
+def import_map(root: Path) -> str:
+    """Which parts of the tree each subpackage imports: the layers as the code has them, not as they were drawn."""
+    parts = sorted(
+        ".".join(path.parent.relative_to(root).parts)
+        for package in ("drivers", "robotd")
+        for path in (root / package).glob("*/__init__.py")
+    )
+
+    def part_of(module: str) -> str | None:
+        return next((part for part in parts if module == part or module.startswith(part + ".")), None)
+
+    modules = {".".join(p.relative_to(root).with_suffix("").parts) for p in root.glob("*/**/*.py")}
+    lines = ["```"]
+    for part in parts:
+        used: set[str] = set()
+        for path in sorted((root / part.replace(".", "/")).rglob("*.py")):
+            for imported in _imports(path):
+                module = imported
+                while module not in modules and f"{module}.__init__" not in modules and "." in module:
+                    module = module.rsplit(".", 1)[0]  # `from a.b import Name`: the module is a.b
+                used.add(part_of(module) or module)
+        others = sorted(u.replace(".", "/") for u in used - {part})
+        lines.append(f"{part.replace('.', '/') + '/':20s} -> {', '.join(others) or '(nothing of robotd or drivers)'}")
+    lines.append("```")
+    return "\n".join(lines) + "\n"
+
+
 # block name -> how to produce its content from the repository root
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "modules": module_map,
+    "imports": import_map,
     "config-reference": lambda _root: config_reference(),
     "results": _file("docs/results/results.md"),
     "bench": _file("docs/bench.md"),

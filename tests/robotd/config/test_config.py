@@ -14,7 +14,7 @@ from paths import REPO
 from robotd.cli import EX_CONFIG, main
 from robotd.config.model import RobotdConfig, config_reference, load, parse
 from robotd.config.schema import ConfigError
-from robotd.readme import current
+from robotd.readme import current, import_map
 
 
 def problems_of(text: str) -> list[str]:
@@ -357,3 +357,27 @@ def test_readme_blocks_are_current() -> None:
     """The configuration reference, the module map and the figures in the README are what their sources say."""
     readme = (REPO / "README.md").read_text()
     assert current(readme, REPO) == readme, "README is stale: run `make readme` (robotd readme)"
+
+
+def test_the_import_map_names_each_subpackages_imports_from_its_code(tmp_path: Path) -> None:
+    files = {
+        "drivers/__init__.py": "",
+        "drivers/settings.py": "",
+        "drivers/wheels/__init__.py": "",
+        "drivers/wheels/motors.py": "from drivers.settings import X\nimport numpy\n",
+        "robotd/__init__.py": "",
+        "robotd/kinematics.py": "",
+        "robotd/daemon/__init__.py": "",
+        "robotd/daemon/service.py": "def f():\n    from drivers.wheels.motors import M\n"
+        "    from robotd import kinematics\n",
+        "robotd/logs/__init__.py": "",
+    }
+    for name, text in files.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    rows = {line.split()[0]: line.split("->")[1].strip() for line in import_map(tmp_path).splitlines()[1:-1]}
+    assert rows == {
+        "drivers/wheels/": "drivers/settings",
+        "robotd/daemon/": "drivers/wheels, robotd/kinematics",
+        "robotd/logs/": "(nothing of robotd or drivers)",
+    }
