@@ -188,16 +188,7 @@ def install(steps: list[Step], target: Target, *, dry_run: bool, say: Callable[[
         state = step.check(target)
         if state.kind is Kind.BLOCKED and not dry_run:
             raise InstallError(state.what)
-        if state.kind is Kind.CHANGE:
-            changes += 1
-            if not dry_run:
-                step.apply(target)
-            if step.topic:
-                target.changed.add(step.topic)
-        elif state.kind is Kind.RECORD:
-            target.recorded.append(state.what)
-        verb = {Kind.CHANGE: "would" if dry_run else "done"}.get(state.kind, state.kind.value)
-        say(_line(verb, state))
+        changes += _carry_out(step, state, step.apply, target, dry_run=dry_run, say=say)
     return changes
 
 
@@ -206,15 +197,29 @@ def uninstall(steps: list[Step], target: Target, *, dry_run: bool, say: Callable
     changes = 0
     order = sorted(enumerate(steps), key=lambda pair: (pair[1].removal_phase, -pair[0]))  # last in, first out
     for _, step in order:
-        state = step.check_removal(target)
-        if state.kind is Kind.CHANGE:
-            changes += 1
-            if not dry_run:
-                step.remove(target)
-            if step.topic:
-                target.changed.add(step.topic)
-        elif state.kind is Kind.RECORD:
-            target.recorded.append(state.what)
-        verb = {Kind.CHANGE: "would" if dry_run else "done"}.get(state.kind, state.kind.value)
-        say(_line(verb, state))
+        changes += _carry_out(step, step.check_removal(target), step.remove, target, dry_run=dry_run, say=say)
     return changes
+
+
+def _carry_out(
+    step: Step,
+    state: State,
+    change: Callable[[Target], None],
+    target: Target,
+    *,
+    dry_run: bool,
+    say: Callable[[str], None],
+) -> int:
+    """Make one step's change when its state asks for one (not with `dry_run`), and say what happened: 1 if changed."""
+    changed = 0
+    if state.kind is Kind.CHANGE:
+        changed = 1
+        if not dry_run:
+            change(target)
+        if step.topic:
+            target.changed.add(step.topic)
+    elif state.kind is Kind.RECORD:
+        target.recorded.append(state.what)
+    verb = {Kind.CHANGE: "would" if dry_run else "done"}.get(state.kind, state.kind.value)
+    say(_line(verb, state))
+    return changed
