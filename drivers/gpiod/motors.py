@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Self
@@ -146,6 +147,16 @@ class GpiodMotors:
         self.close()
 
 
+@dataclass(frozen=True, slots=True)
+class StopReport:
+    """What `stop_gpiod_motors` could not do, one line each."""
+
+    pwm_problems: list[str]
+    """PWM attributes that could not be written: those channels may still run."""
+    direction_note: str | None
+    """Why the direction pins were left as they are (held by a running robotd, or no GPIO chip), or None."""
+
+
 def stop_gpiod_motors(
     enable_pins: Sequence[int],
     direction_pins: Sequence[int] = (),
@@ -155,24 +166,24 @@ def stop_gpiod_motors(
     attributes: Attributes = SYSFS,
     open_outputs: OutputLinesOpener = open_output_lines,
     gpio_chip: str | None = None,
-) -> list[str]:
+) -> StopReport:
     """Stop the motors without robotd (blocking; for `robotd stop-motors` and systemd's ExecStopPost).
 
     Every exported RP1 PWM channel of `enable_pins` gets duty 0 then enable 0; then, if no process holds them, the
-    direction pins are driven low. Raises GpioUnavailableError when there is no RP1 PWM chip; returns what else
-    could not be done, one line each (the direction pins are held while a robotd runs: that is not an error here,
-    its own exit path owns them).
+    direction pins are driven low. Raises GpioUnavailableError when there is no RP1 PWM chip. Direction pins held by
+    a running robotd are not an error here (its own exit path owns them; with every enable at 0 the L298 coasts).
     """
     chip = find_pwm_chip(pwm_device, pwm_root)
     problems = stop_pwm_channels(chip, [pwm_channel_of(pin) for pin in enable_pins], attributes)
+    note = None
     if direction_pins:
         try:
             outputs = open_outputs(list(direction_pins), gpio_chip)
         except OSError as error:  # GpioUnavailableError is one
-            problems.append(f"direction pins left as they are: {error}")
+            note = f"direction pins left as they are: {error}"
         else:
             try:
                 outputs.set_values(dict.fromkeys(direction_pins, 0))
             finally:
                 outputs.release()
-    return problems
+    return StopReport(problems, note)

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from drivers.gpiod.lines import GpioUnavailableError
-from drivers.gpiod.motors import GpiodMotors, stop_gpiod_motors
+from drivers.gpiod.motors import GpiodMotors, StopReport, stop_gpiod_motors
 from drivers.gpiod.pwm import SysfsAttributes, find_pwm_chip
 from drivers.virtual.output_lines import VirtualOutputLines
 from drivers.virtual.pwm_sysfs import VirtualPwmSysfs
@@ -144,16 +144,17 @@ def test_no_rp1_pwm_chip_is_a_clear_error(tmp_path: Path) -> None:
 def test_stop_motors_zeroes_what_a_dead_process_left_through_the_real_sysfs_writes(rig: Rig) -> None:
     abandoned = rig.motors()  # its owner "dies": nothing closes it
     abandoned.set_duties((0.4, -0.4, 0.4, 0.4))
-    problems = stop_gpiod_motors(
+    report = stop_gpiod_motors(
         [12, 13, 18, 19], [16, 20, 21, 26], pwm_root=rig.sysfs.class_root, open_outputs=rig.lines.open
     )  # with the real SysfsAttributes: plain file writes into the directory
     assert [rig.sysfs.output(channel) for channel in range(4)] == [0.0] * 4
     assert [rig.sysfs.read(rig.sysfs.chip / f"pwm{c}" / "duty_cycle") for c in range(4)] == ["0"] * 4
-    assert problems == [
-        "direction pins left as they are: [Errno 16] lines [16, 20, 21, 26] are held by another request"
-    ]
+    assert report == StopReport(
+        [], "direction pins left as they are: [Errno 16] lines [16, 20, 21, 26] are held by another request"
+    )
     abandoned.close()
-    assert stop_gpiod_motors([12, 13], [16, 20], pwm_root=rig.sysfs.class_root, open_outputs=rig.lines.open) == []
+    report = stop_gpiod_motors([12, 13], [16, 20], pwm_root=rig.sysfs.class_root, open_outputs=rig.lines.open)
+    assert report == StopReport([], None)
     assert (rig.lines.level(16), rig.lines.level(20)) == (0, 0)
 
 
