@@ -11,3 +11,9 @@ BENCHMARK_MODULES: tuple[str, ...] = (
     "robotd.bench.sim",
     "robotd.bench.daemon",
 )
+
+BENCHMARK_ADDITIONS: dict[str, tuple[str, ...]] = {
+    "encoders": ("robotd.bench.gpiod",),
+}
+"""Modules whose `run(quick)` adds figures to the benchmark named by the key: run right after it, their lines printed
+and their figures reported under its name (so `robotd bench encoders` shows both GPIO back-ends)."""

@@ -14,7 +14,7 @@ import time
 from types import ModuleType
 from typing import TextIO
 
-from robotd.bench import BENCHMARK_MODULES
+from robotd.bench import BENCHMARK_ADDITIONS, BENCHMARK_MODULES
 
 
 class _Tee(io.TextIOBase):
@@ -83,6 +83,8 @@ def run_benchmarks(args: argparse.Namespace) -> int:
         capture = _Tee(sys.stdout)
         with contextlib.redirect_stdout(capture):
             figures[name] = modules[name].run(quick=args.quick)
+            for addition in BENCHMARK_ADDITIONS.get(name, ()):
+                figures[name] |= importlib.import_module(addition).run(quick=args.quick)
         printed[name] = capture.text()
     if args.report:
         with open(args.report, "w", encoding="utf-8") as out:

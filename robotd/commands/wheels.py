@@ -10,7 +10,7 @@ import time
 
 from drivers.pigpiod.client import PigpiodUnavailableError
 from robotd.config.model import RobotdConfig, load
-from robotd.config.motorpins import read_stop_targets
+from robotd.config.motorpins import StopTargets, read_stop_targets
 
 EX_UNAVAILABLE = 69
 
@@ -18,13 +18,15 @@ EX_UNAVAILABLE = 69
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add the wheel I/O sub-commands."""
     stop = subparsers.add_parser(
-        "stop-motors", help="drive every motor pin low through pigpiod (systemd ExecStopPost; no daemon needed)"
+        "stop-motors",
+        help="stop every motor on the configured GPIO back-end: pins low through pigpiod, or the RP1's PWM at 0 on a"
+        " Pi 5 (systemd ExecStopPost; no daemon needed)",
     )
     stop.add_argument(
         "--config",
         metavar="PATH",
-        help="configuration with the motor pins and pigpiod (default: built-in); any field it cannot read is"
-        " replaced by its built-in value, with a line on stderr",
+        help="configuration with the motor pins, pigpiod and gpio sections (default: built-in); any field it cannot"
+        " read is replaced by its built-in value, with a line on stderr",
     )
     stop.set_defaults(handler=stop_motors)
 
@@ -51,18 +53,55 @@ def _config(path: str | None) -> RobotdConfig:
 
 
 def stop_motors(args: argparse.Namespace) -> int:
-    """Zero every motor through pigpiod with the pins it can read (defaults for the rest); 69: pigpiod unreachable."""
-    from drivers.wheels.motors import stop_all_motors  # noqa: PLC0415 - keep `robotd --help` fast
+    """Zero every motor on the configured back-end with the pins it can read (defaults for the rest).
+
+    Exit 69 when the back-end is unreachable (pigpiod, or the RP1's PWM chip), 1 when a PWM channel could not be
+    stopped, else 0.
+    """
+    from robotd.config.gpio import resolve_backend  # noqa: PLC0415 - keep `robotd --help` fast
 
     targets = read_stop_targets(args.config)  # never refuses: a broken file still leaves the pins it can read
     for fallback in targets.fallbacks:
         print(f"robotd stop-motors: {fallback}", file=sys.stderr)
+    if resolve_backend(targets.gpio) == "gpiod":
+        return _stop_gpiod_motors(targets)
+    from drivers.wheels.motors import stop_all_motors  # noqa: PLC0415
+
     try:
         stop_all_motors(targets.motors, targets.pigpiod)
     except PigpiodUnavailableError as error:
         print(f"robotd stop-motors: {error}", file=sys.stderr)
         return EX_UNAVAILABLE
     print(f"robotd stop-motors: all motor pins low on {targets.pigpiod.host}:{targets.pigpiod.port}")
+    return 0
+
+
+def _stop_gpiod_motors(targets: StopTargets) -> int:
+    """The gpiod back-end's stop: every RP1 PWM channel of the enable pins at 0, the direction pins low if free."""
+    from drivers.gpiod.lines import GpioUnavailableError  # noqa: PLC0415
+    from drivers.gpiod.motors import stop_gpiod_motors  # noqa: PLC0415
+    from drivers.wheels.motors import enable_and_direction_pins  # noqa: PLC0415
+
+    gpio = targets.gpio
+    enables, directions = enable_and_direction_pins(targets.motors)
+    try:
+        report = stop_gpiod_motors(
+            enables,
+            directions,
+            pwm_root=gpio.pwm_class_dir,
+            pwm_device=gpio.pwm_device,
+            gpio_chip=gpio.gpio_chip or None,
+        )
+    except (GpioUnavailableError, ValueError) as error:  # ValueError: an enable pin without RP1 PWM
+        print(f"robotd stop-motors: {error}", file=sys.stderr)
+        return EX_UNAVAILABLE
+    for problem in report.pwm_problems:
+        print(f"robotd stop-motors: could not stop {problem}", file=sys.stderr)
+    if report.direction_note is not None:
+        print(f"robotd stop-motors: {report.direction_note}", file=sys.stderr)
+    if report.pwm_problems:
+        return 1
+    print(f"robotd stop-motors: every RP1 PWM channel of GPIO {', '.join(map(str, enables))} stopped")
     return 0
 
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from robotd.config.gpio import GpioConfig, gpiod_problems
 from robotd.config.schema import (
     ConfigError,
     build,
@@ -522,6 +523,7 @@ class RobotdConfig:
     encoders: EncodersConfig = section(EncodersConfig, "Wheel encoders.")
     motors: MotorsConfig = section(MotorsConfig, "Motor drivers.")
     pigpiod: PigpiodConfig = section(PigpiodConfig, "Connection to pigpiod.")
+    gpio: GpioConfig = section(GpioConfig, "GPIO back-end: pigpio, gpiod (Raspberry Pi 5) or auto.")
     marvelmind: MarvelmindConfig = section(MarvelmindConfig, "Marvelmind indoor positioning.")
     ekf: EkfConfig = section(EkfConfig, "Pose estimation.")
     teleop: TeleopConfig = section(TeleopConfig, "Remote control over UDP.")
@@ -545,6 +547,8 @@ def _cross_checks(config: RobotdConfig) -> list[str]:
             problems.append(f"{path}: GPIO {pin} is already used by {owners[pin]}")
         else:
             owners[pin] = path
+    if config.gpio.backend == "gpiod":  # `auto` is checked at start, on the board it resolves on (preflight)
+        problems += gpiod_problems(config.motors)
     problems += _teleop_checks(config.teleop)
     if config.pose_socket.rate_hz > config.control.rate_hz * 10:
         problems.append(

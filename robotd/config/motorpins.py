@@ -1,7 +1,8 @@
-"""The motor pins and pigpiod's address, read from a configuration that may be broken (for `robotd stop-motors`).
+"""The motor pins and the GPIO back-end, read from a configuration that may be broken (for `robotd stop-motors`).
 
-The last-resort stop must run whatever else is wrong with the file: it reads only `motors.wheels.*.{enable,in1,in2}`
-and `pigpiod.{host,port,connect_timeout_s}`, validates each field on its own, and falls back to the shipped default
+The last-resort stop must run whatever else is wrong with the file: it reads only `motors.wheels.*.{enable,in1,in2}`,
+`pigpiod.{host,port,connect_timeout_s}` and `gpio.{backend,gpio_chip,pwm_class_dir,pwm_device}`, validates each
+field on its own, and falls back to the shipped default
 for every field it cannot use (the whole file when it cannot be read or parsed), saying which and what it used.
 """
 
@@ -11,12 +12,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from robotd.config.gpio import GpioConfig
 from robotd.config.model import WHEELS, MotorPins, MotorsConfig, MotorWheels, PigpiodConfig, read_config_text
 from robotd.config.schema import ConfigError, build_fields
 from robotd.config.yamltext import parse_yaml
 
 PIN_FIELDS = ("enable", "in1", "in2")
 PIGPIOD_FIELDS = ("host", "port", "connect_timeout_s")
+GPIO_FIELDS = ("backend", "gpio_chip", "pwm_class_dir", "pwm_device")
 
 
 @dataclass(frozen=True, slots=True)
@@ -25,6 +28,7 @@ class StopTargets:
 
     motors: MotorsConfig = field(default_factory=MotorsConfig)
     pigpiod: PigpiodConfig = field(default_factory=PigpiodConfig)
+    gpio: GpioConfig = field(default_factory=GpioConfig)
     fallbacks: tuple[str, ...] = ()
 
 
@@ -76,5 +80,9 @@ def read_stop_targets(path: str | None) -> StopTargets:
     section = _section(raw, ("pigpiod",), notes, f"using pigpiod {pigpiod_base.host}:{pigpiod_base.port}")
     pigpiod, refused = build_fields(PigpiodConfig, section, "pigpiod", pigpiod_base, PIGPIOD_FIELDS)
     notes += [f"{problem}; using {getattr(pigpiod_base, name)!r}" for name, problem in refused.items()]
+    gpio_base = defaults.gpio
+    section = _section(raw, ("gpio",), notes, f"using gpio.backend {gpio_base.backend}")
+    gpio, refused = build_fields(GpioConfig, section, "gpio", gpio_base, GPIO_FIELDS)
+    notes += [f"{problem}; using {getattr(gpio_base, name)!r}" for name, problem in refused.items()]
     motors = replace(defaults.motors, wheels=MotorWheels(**wheels))
-    return StopTargets(motors, pigpiod, tuple(notes))
+    return StopTargets(motors, pigpiod, gpio, tuple(notes))

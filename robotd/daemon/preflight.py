@@ -9,6 +9,7 @@ from __future__ import annotations
 import ipaddress
 import socket
 
+from robotd.config.gpio import gpiod_problems, resolve_backend
 from robotd.config.model import RobotdConfig
 from robotd.config.schema import ConfigError
 from robotd.daemon.teleop import check_key_file
@@ -31,6 +32,8 @@ def host_problems(config: RobotdConfig) -> list[str]:
     if config.teleop.key_file:
         problems += check_key_file(config.teleop.key_file)
     problems += bind_problems(config.teleop.bind, "teleop.bind")
+    if config.gpio.backend == "auto" and resolve_backend(config.gpio) == "gpiod":  # explicit gpiod: checked by parse
+        problems += gpiod_problems(config.motors)
     return problems
 
 

@@ -28,7 +28,7 @@ import logging
 import math
 import signal
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -40,14 +40,14 @@ from drivers.marvelmind.events import Event as MarvelmindEvent
 from drivers.marvelmind.events import FixUnavailable, Position
 from drivers.marvelmind.reader import MarvelmindReader
 from drivers.pigpiod.client import PigpioCommandError
-from drivers.pigpiod.deadman import Deadman, PigpioDeadman
 from drivers.pigpiod.protocol import ProtocolError
-from drivers.wheels.encoders import EncoderSource, PigpioEncoders, WheelTicks
-from drivers.wheels.motors import GpiozeroMotors, MotorOutputs, enable_and_direction_pins
+from drivers.wheels.encoders import EncoderSource, WheelTicks
+from drivers.wheels.motors import MotorOutputs
 from robotd.config.model import RobotdConfig
 from robotd.daemon import posesock
 from robotd.daemon.control import MotionController, StallFault
 from robotd.daemon.deadman_keeper import DeadmanFactory, DeadmanKeeper
+from robotd.daemon.hardware import Hardware, build_hardware
 from robotd.daemon.periodstats import PeriodStats
 from robotd.daemon.recorder import Recorder, create_log, daemon_meta
 from robotd.daemon.sdnotify import Notifier
@@ -107,6 +107,7 @@ class Daemon:
         encoders: EncoderSource | None = None,
         motors_factory: MotorsFactory | None = None,
         deadman_factory: DeadmanFactory | None = None,
+        hardware: Hardware | None = None,
     ) -> None:
         self.config = config
         self.clock = clock
@@ -120,13 +121,14 @@ class Daemon:
             duty_limit=config.motors.duty_limit,
             on_fault=self._on_stall_fault,
         )
-        self.encoders = encoders if encoders is not None else PigpioEncoders(config.encoders, config.pigpiod, clock)
-        self._motors_factory = motors_factory or (lambda: GpiozeroMotors(config.motors, config.pigpiod))
+        # the wheels of the configured back-end (robotd.daemon.hardware); a test may inject its own parts
+        wheels = hardware or build_hardware(config, clock)
+        self.encoders = encoders if encoders is not None else wheels.encoders
+        self._motors_factory = motors_factory or wheels.motors_factory
         self.motors: MotorOutputs | None = None
-        # pigpiod's deadman guards the real motors; injected motors (tests) get the deadman injected with them, if any
-        real_motors = motors_factory is None and config.motors.deadman_script
+        # the back-end's deadman guards the real motors; injected motors (tests) get the deadman injected with them
         self.deadman = DeadmanKeeper(
-            deadman_factory or (self._pigpio_deadman if real_motors else None),
+            deadman_factory or (wheels.deadman_factory if motors_factory is None else None),
             on_trip=self._on_deadman_trip,
             on_lost=self._on_deadman_lost,
             uninstall_timeout_s=config.pigpiod.connect_timeout_s,
@@ -352,16 +354,6 @@ class Daemon:
                 motors.close()
 
     # --- the deadman in pigpiod -----------------------------------------------------------------------------------
-
-    def _pigpio_deadman(self) -> Awaitable[Deadman]:
-        pigpiod, period = self.config.pigpiod, self.controller.period_s
-        enables, directions = enable_and_direction_pins(self.config.motors)
-        # at least two periods: a timeout the control loop's own jitter could reach would trip while robotd runs
-        timeout = max(self.config.teleop.deadman_timeout_s, 2.0 * period)
-        host, port = pigpiod.host, pigpiod.port
-        return PigpioDeadman.install(
-            host, port, pigpiod.connect_timeout_s, enables, directions, timeout_s=timeout, period_s=period
-        )
 
     def _on_deadman_lost(self, error: OSError) -> None:
         self._counters["motor_failures"] += 1

@@ -7,45 +7,17 @@ what tells two beacons with the same generic STM32 USB id (0483:5740) apart.
 
 from __future__ import annotations
 
-import enum
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
-MODEL_FILE = "proc/device-tree/model"
+from drivers.board import MODEL_FILE, RP1_BOARDS, Board, board_of, read_model
+
 BY_ID_DIR = "dev/serial/by-id"
-RP1_BOARDS = ("Raspberry Pi 5", "Raspberry Pi 500", "Raspberry Pi Compute Module 5")
 SERIAL_PATTERN = re.compile(r"[A-Za-z0-9._-]{1,64}")
 """A serial number robotd writes into a udev rule: no quotes, spaces or glob characters."""
 
-
-class Board(enum.Enum):
-    """The board families robotd installs differently on."""
-
-    PI4 = "pi4"  # a Raspberry Pi 4 or earlier: pigpio runs, pigpiod's drop-in is installed
-    PI5 = "pi5"  # an RP1 board: no pigpio (the gpiod back-end)
-
-    @property
-    def uses_pigpio(self) -> bool:
-        """True when robotd drives the GPIO through pigpiod on this board."""
-        return self is Board.PI4
-
-
-def read_model(root: Path) -> str | None:
-    """The board's model string from the device tree under `root`, or None when there is none (not a Pi)."""
-    try:
-        return (root / MODEL_FILE).read_bytes().rstrip(b"\0\n").decode("utf-8", "replace")
-    except OSError:
-        return None
-
-
-def board_of(model: str) -> Board | None:
-    """The board family of a device-tree model string, or None when it is not a Raspberry Pi."""
-    if model.startswith(RP1_BOARDS):
-        return Board.PI5
-    if model.startswith("Raspberry Pi"):
-        return Board.PI4
-    return None
+__all__ = ["MODEL_FILE", "RP1_BOARDS", "Board", "SerialDevice", "board_of", "read_model", "serial_devices", "serial_of"]
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,0 +1,126 @@
+"""The daemon's wheels built from the configuration in one place: encoders, motors and their deadman, per back-end.
+
+`build_hardware` picks the back-end by name (`gpio.backend`, `auto` resolved by the board: robotd.config.gpio) and
+builds what the daemon needs from it; nothing here touches a pin (motors are connected later, by the factory, off the
+event loop). The stop paths differ by back-end:
+- pigpio: pigpiod keeps driving after its client dies, so a deadman script inside pigpiod (drivers.pigpiod.deadman)
+  stops the motors when the control loop stops bumping it (killed, stopped or hung), if `motors.deadman_script`.
+- gpiod: sysfs PWM keeps running after its process dies, so a watchdog process started with the motors
+  (drivers.gpiod.watchdog) stops the PWM when robotd dies, if `gpio.pwm_watchdog`. It does not cover a robotd that
+  is stopped or hung but alive; systemd's watchdog (WatchdogSec) kills such a robotd, and the watchdog process then
+  stops the PWM.
+Both leave `robotd stop-motors` for systemd's ExecStopPost.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from drivers.gpiod.encoders import GpiodEncoders
+from drivers.gpiod.lines import (
+    EventLineSettings,
+    EventLinesOpener,
+    OutputLinesOpener,
+    open_event_lines,
+    open_output_lines,
+)
+from drivers.gpiod.motors import GpiodMotors
+from drivers.gpiod.pwm import SYSFS, Attributes, find_pwm_chip
+from drivers.pigpiod.deadman import Deadman, PigpioDeadman
+from drivers.wheels.encoders import EncoderSource, PigpioEncoders, wiring
+from drivers.wheels.motors import GpiozeroMotors, MotorOutputs, enable_and_direction_pins, wheel_pins
+from robotd.config.gpio import Backend, resolve_backend
+from robotd.config.model import RobotdConfig
+from robotd.daemon.deadman_keeper import DeadmanFactory
+
+
+@dataclass(frozen=True, slots=True)
+class GpiodIo:
+    """Where the gpiod back-end's line requests and PWM writes go: the kernel's by default, stand-ins in tests."""
+
+    open_event_lines: EventLinesOpener = open_event_lines
+    open_output_lines: OutputLinesOpener = open_output_lines
+    pwm_attributes: Attributes = SYSFS
+
+
+@dataclass(frozen=True, slots=True)
+class Hardware:
+    """The back-end chosen and what the daemon runs on it."""
+
+    backend: Backend
+    encoders: EncoderSource
+    motors_factory: Callable[[], MotorOutputs]
+    """Connects the motors (blocking: the daemon calls it in a thread); zeroed from the start."""
+    deadman_factory: DeadmanFactory | None
+    """Installs a deadman for the motors just connected; None when the back-end or the configuration has none."""
+
+
+def build_hardware(
+    config: RobotdConfig,
+    clock: Callable[[], float],
+    *,
+    gpiod_io: GpiodIo | None = None,
+    root: Path = Path("/"),
+) -> Hardware:
+    """The wheels of the back-end `config` names, on the machine whose root directory is `root`."""
+    backend = resolve_backend(config.gpio, root)
+    if backend == "gpiod":
+        return _gpiod(config, clock, gpiod_io or GpiodIo())
+    return _pigpio(config, clock)
+
+
+def _pigpio(config: RobotdConfig, clock: Callable[[], float]) -> Hardware:
+    pigpiod = config.pigpiod
+
+    def install_deadman() -> Awaitable[Deadman]:
+        period = 1.0 / config.control.rate_hz
+        enables, directions = enable_and_direction_pins(config.motors)
+        # at least two periods: a timeout the control loop's own jitter could reach would trip while robotd runs
+        timeout = max(config.teleop.deadman_timeout_s, 2.0 * period)
+        return PigpioDeadman.install(
+            pigpiod.host,
+            pigpiod.port,
+            pigpiod.connect_timeout_s,
+            enables,
+            directions,
+            timeout_s=timeout,
+            period_s=period,
+        )
+
+    return Hardware(
+        "pigpio",
+        PigpioEncoders(config.encoders, pigpiod, clock),
+        lambda: GpiozeroMotors(config.motors, pigpiod),
+        install_deadman if config.motors.deadman_script else None,
+    )
+
+
+def _gpiod(config: RobotdConfig, clock: Callable[[], float], io: GpiodIo) -> Hardware:
+    gpio, encoders, motors = config.gpio, config.encoders, config.motors
+    chip = gpio.gpio_chip or None
+    settings = EventLineSettings(chip=chip, pull=encoders.pull, event_buffer_size=gpio.event_buffer_size)
+    source = GpiodEncoders(
+        wiring(encoders),
+        encoders.counts_per_rev,
+        decoding=encoders.decoding,
+        publish_rate_hz=encoders.publish_rate_hz,
+        settings=settings,
+        open_lines=io.open_event_lines,
+        clock=clock,
+    )
+
+    def connect_motors() -> GpiodMotors:
+        return GpiodMotors(
+            wheel_pins(motors),
+            frequency_hz=motors.pwm_frequency_hz,
+            duty_limit=motors.duty_limit,
+            pwm_chip=find_pwm_chip(gpio.pwm_device, gpio.pwm_class_dir),
+            attributes=io.pwm_attributes,
+            open_outputs=io.open_output_lines,
+            gpio_chip=chip,
+            watchdog=gpio.pwm_watchdog,
+        )
+
+    return Hardware("gpiod", source, connect_motors, None)

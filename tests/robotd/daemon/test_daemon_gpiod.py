@@ -1,0 +1,115 @@
+"""The daemon on the gpiod back-end (Raspberry Pi 5), built from its configuration by robotd.daemon.hardware.
+
+The wheels are the Pi 5 stand-ins: kernel edge-event records through a pipe (drivers.virtual.event_pipe), a directory
+laid out as /sys/class/pwm named by the configuration's `gpio.pwm_class_dir` (drivers.virtual.pwm_sysfs) and
+recording output lines. Teleop arrives over real UDP on loopback.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from gpiod_support import drive_turns
+from inprocess_daemon import daemon_config, running, until
+
+from drivers.gpiod.pwm import RP1_PWM_CHANNELS
+from drivers.settings import in_wheel_order
+from drivers.virtual.event_pipe import VirtualEventLines
+from drivers.virtual.output_lines import VirtualOutputLines
+from drivers.virtual.pwm_sysfs import VirtualPwmSysfs
+from drivers.wheels.encoders import wiring
+from robotd.config.model import RobotdConfig
+from robotd.daemon.hardware import GpiodIo, build_hardware
+from robotd.daemon.service import Daemon
+from robotd.kinematics import Twist
+from robotd.tools.teleop_client import UdpLink
+
+Outputs = list[tuple[float, int, int]]
+
+
+@dataclass
+class Pi5:
+    """The stand-ins of a Pi 5's GPIO, and the configuration that names them."""
+
+    config: RobotdConfig
+    edges: VirtualEventLines
+    lines: VirtualOutputLines
+    sysfs: VirtualPwmSysfs
+
+    @property
+    def io(self) -> GpiodIo:
+        return GpiodIo(self.edges.open, self.lines.open, self.sysfs)
+
+    def outputs(self) -> Outputs:
+        """(enable duty, IN1, IN2) per wheel, as the pins carry them."""
+        pins = in_wheel_order(self.config.motors.wheels)
+        return [
+            (self.sysfs.output(RP1_PWM_CHANNELS[p.enable]), self.lines.level(p.in1), self.lines.level(p.in2))
+            for p in pins
+        ]
+
+
+@pytest.fixture
+def pi5(tmp_path: Path) -> Pi5:
+    sysfs = VirtualPwmSysfs(tmp_path / "sys")
+    config = daemon_config(
+        tmp_path,
+        gpio={"backend": "gpiod", "pwm_class_dir": str(sysfs.class_root), "pwm_watchdog": False},
+        control={"rate_hz": 50},
+    )
+    return Pi5(config, VirtualEventLines(), VirtualOutputLines(), sysfs)
+
+
+def test_the_configured_back_end_is_built_and_auto_follows_the_board(pi5: Pi5, tmp_path: Path) -> None:
+    gpiod = build_hardware(pi5.config, time.monotonic, gpiod_io=pi5.io)
+    assert (gpiod.backend, type(gpiod.encoders).__name__, gpiod.deadman_factory) == ("gpiod", "GpiodEncoders", None)
+    auto = daemon_config(tmp_path, gpio={"backend": "auto"})
+    model = tmp_path / "root" / "proc" / "device-tree" / "model"
+    model.parent.mkdir(parents=True)
+    model.write_bytes(b"Raspberry Pi 5 Model B Rev 1.0\0")
+    assert build_hardware(auto, time.monotonic, root=tmp_path / "root").backend == "gpiod"
+    model.write_bytes(b"Raspberry Pi 4 Model B Rev 1.4\0")
+    pigpio = build_hardware(auto, time.monotonic, root=tmp_path / "root")
+    assert (pigpio.backend, type(pigpio.encoders).__name__) == ("pigpio", "PigpioEncoders")
+    assert pigpio.deadman_factory is not None  # pigpiod's deadman script, as motors.deadman_script asks
+
+
+async def test_the_daemon_drives_and_counts_on_the_gpiod_back_end_and_stops_the_pwm_on_the_way_out(pi5: Pi5) -> None:
+    daemon = Daemon(pi5.config, hardware=build_hardware(pi5.config, time.monotonic, gpiod_io=pi5.io))
+    link = UdpLink("127.0.0.1", pi5.config.teleop.port, None)
+    async with running(daemon) as task:
+        await until(lambda: daemon.motors is not None, "the motors connected")
+        assert pi5.outputs() == [(0.0, 0, 0)] * 4  # zero from the start
+        assert await asyncio.to_thread(link.sync, 5.0), "the daemon answered the teleop hello"
+
+        async def forward() -> bool:
+            link.send(Twist(0.2, 0.0, 0.0))
+            await asyncio.sleep(0.02)
+            return all(duty > 0 and (in1, in2) == (1, 0) for duty, in1, in2 in pi5.outputs())
+
+        async with asyncio.timeout(10):
+            while not await forward():
+                pass
+        # Every wheel turns half a revolution forward, a twentieth at a time as a turning wheel delivers its edges
+        # (the pipe, like the kernel's buffer, holds about a thousand): they come back as kernel records.
+        encoders = wiring(pi5.config.encoders)
+        start_ns, parts = time.monotonic_ns(), 20
+        for part in range(parts):
+            before, after = [0.5 * part / parts] * 4, [0.5 * (part + 1) / parts] * 4
+            ends = drive_turns(pi5.edges, encoders, after, start_ns + part * 2_500_000, 2_500_000, 6800, before)
+            decoded = sum(ends)
+            await until(lambda: daemon.encoders.counters.reports == decoded, "the edges decoded")  # noqa: B023
+        await until(lambda: daemon.estimator.pose().x > 0.14, "the odometry moving the pose forward half a turn")
+        status = daemon._status_message(daemon.clock())["drivers"]["encoders"]
+        assert status["reports"] == sum(ends) == 4 * 3400
+        assert (status["lost_reports"], status["state"]) == (0, "ok")
+        task.cancel()
+    link.sock.close()
+    assert pi5.outputs() == [(0.0, 0, 0)] * 4
+    assert pi5.sysfs.exported() == []  # disabled and unexported
+    assert pi5.lines.held == set()
+    assert [request for request, _ in pi5.edges.requests] == [sorted(line for e in encoders for line in (e.a, e.b))]
