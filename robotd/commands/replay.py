@@ -10,9 +10,9 @@ from pathlib import Path
 
 from robotd.config.model import RobotdConfig, load, parse
 from robotd.logs import logcheck
-from robotd.logs.sensorlog import read_log
 from robotd.offline import librsf
 from robotd.offline.replay import format_table, replay, robot_from_log, write_outputs
+from robotd.viz.mcaplog import read_any_log
 
 # sysexits.h: what a script calling `robotd replay` can tell apart
 EX_DATAERR = 65  # the log cannot be replayed (no events, times going backwards)
@@ -27,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     rep = subparsers.add_parser(
         "replay", help="replay a sensor log through odometry, the paper's EKF and robotd's EKF; score against truth"
     )
-    rep.add_argument("log", help="sensor log (JSON Lines)")
+    rep.add_argument("log", help="sensor log (JSON Lines, or an MCAP file: .mcap)")
     rep.add_argument("--out", required=True, help="directory for estimates.jsonl and metrics.json")
     rep.add_argument("--config", help="YAML configuration (default: built-in defaults); meta.robot overrides geometry")
     rep.set_defaults(handler=run_replay)
@@ -52,7 +52,7 @@ def run_replay(args: argparse.Namespace) -> int:
         print(f"robotd replay: --out {out}: cannot make it a directory: {why}", file=sys.stderr)
         return EX_CANTCREAT
     try:
-        log = read_log(args.log)
+        log = read_any_log(args.log)
     except OSError as error:
         print(f"robotd replay: {args.log}: {error.strerror or error}", file=sys.stderr)
         return EX_NOINPUT
