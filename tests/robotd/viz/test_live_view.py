@@ -12,9 +12,9 @@ from typing import Any
 
 from foxglove_client import FoxgloveClient
 from inprocess_daemon import FakeEncoders, FakeMotors, daemon_config, running, until
+from viz_support import RollingEncoders, fix
 
-from drivers.marvelmind.events import Position, StationaryBeacon, StationaryBeacons
-from drivers.wheels.encoders import WheelTicks
+from drivers.marvelmind.events import StationaryBeacon, StationaryBeacons
 from robotd.daemon.service import Daemon
 
 
@@ -34,24 +34,6 @@ async def read_poses(path: Path, into: dict[float, dict[str, Any]], stop: asynci
                 into[message["t"]] = message
     finally:
         writer.close()
-
-
-def fix(daemon: Daemon, x: float, y: float) -> None:
-    """A hedgehog position arriving now, as the Marvelmind reader hands it."""
-    now = daemon.clock()
-    daemon._on_marvelmind(Position(now, now - 0.05, x, y, 0.0, 7, 1, 0.0, 0, 0, 0.05, 0x11))
-
-
-class RollingEncoders(FakeEncoders):
-    """Fake encoders whose counts grow by `counts` each publication, all wheels forward."""
-
-    counts = 40
-    total = 0
-
-    def ticks(self, degraded: bool = False) -> WheelTicks:
-        self.total += self.counts
-        n = self.total
-        return WheelTicks(self.clock(), (n, n, n, n), (2.0, 2.0, 2.0, 2.0), degraded)
 
 
 def start_daemon(tmp_path: Path) -> Daemon:
