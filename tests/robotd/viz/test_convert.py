@@ -75,5 +75,5 @@ def test_a_record_type_added_to_the_format_gets_its_channel_without_an_edit(
     assert topics["calibration"].schema["properties"]["latency_s"] == {"type": "number"}
     assert set(topics) == {"meta", "wheels", "twist", "ips", "ips_lost", "truth", "cmd", "calibration"}
     path = tmp_path / "c.mcap"
-    write_mcap_log([events.Meta(), Calibration(1.5, 0.12)], path)
+    write_mcap_log([events.Meta(), Calibration(1.5, 0.12)], path)  # type: ignore[list-item]
     assert log_lines(path)[-1] == b'{"type":"calibration","t":1.5,"latency_s":0.12}'

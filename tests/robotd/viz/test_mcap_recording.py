@@ -58,6 +58,7 @@ async def test_the_mcap_recording_holds_what_the_daemon_published_beside_the_log
         reader = make_reader(stream)
         summary = reader.get_summary()
         assert summary is not None
+        assert summary.statistics is not None
         topics = {channel.topic for channel in summary.channels.values()}
         counts = {
             summary.channels[channel_id].topic: n for channel_id, n in summary.statistics.channel_message_counts.items()
