@@ -30,6 +30,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     rep.add_argument("log", help="sensor log (JSON Lines, or an MCAP file: .mcap)")
     rep.add_argument("--out", required=True, help="directory for estimates.jsonl and metrics.json")
     rep.add_argument("--config", help="YAML configuration (default: built-in defaults); meta.robot overrides geometry")
+    rep.add_argument("--mcap", metavar="FILE.mcap", help="also write the log and every method's poses as MCAP")
+    rep.add_argument(
+        "--view",
+        nargs="?",
+        const=8765,
+        type=int,
+        metavar="PORT",
+        help="then serve the replay to Foxglove on 127.0.0.1:PORT (8765) with playback controls, until Ctrl-C",
+    )
     rep.set_defaults(handler=run_replay)
     conv = subparsers.add_parser(
         "convert-librsf", help="convert the libRSF Labyrinth UWB dataset folder (CSV) to a sensor log"
@@ -78,6 +87,10 @@ def run_replay(args: argparse.Namespace) -> int:
         span = log.events[-1].t - log.events[0].t
         rate = span / max(elapsed, 1e-9)
         print(f"{len(log.events)} events, {span:.1f} s of log in {elapsed:.2f} s ({rate:.0f}x real time)")
+    if args.mcap or args.view is not None:
+        from robotd.offline.replay_mcap import write_and_view  # noqa: PLC0415 - the SDK loads only when asked for
+
+        return write_and_view(log, result, config, out=out, mcap=args.mcap, view_port=args.view, written=written)
     print("wrote " + ", ".join(str(path) for path in written))
     return 0
 

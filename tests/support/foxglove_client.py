@@ -41,6 +41,7 @@ class FoxgloveClient:
         self.server_info: dict[str, Any] = {}
         self.channels: dict[str, dict[str, Any]] = {}  # by topic
         self.text: list[dict[str, Any]] = []  # every JSON message from the server
+        self.other_binary: list[bytes] = []  # every binary message that is not Message Data
         self._subscriptions: dict[int, dict[str, Any]] = {}
         self._decoders: dict[int, type[Message] | None] = {}
 
@@ -100,8 +101,11 @@ class FoxgloveClient:
                 for channel in message["channels"]:
                     self.channels[channel["topic"]] = channel
             return None
-        opcode, sub_id, log_time = HEADER.unpack_from(frame)
-        if opcode != MESSAGE_DATA or sub_id not in self._subscriptions:
+        if frame[0] != MESSAGE_DATA:  # Time, Playback State...: kept, not decoded
+            self.other_binary.append(bytes(frame))
+            return None
+        _, sub_id, log_time = HEADER.unpack_from(frame)
+        if sub_id not in self._subscriptions:
             return None
         payload = frame[HEADER.size :]
         decoder = self._decoders[sub_id]
@@ -120,3 +124,17 @@ def _decoder(channel: dict[str, Any]) -> type[Message] | None:
         pool.Add(file)
     decoder: type[Message] = message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
     return decoder
+
+
+PLAYBACK_CONTROL_REQUEST = 3  # the client's binary opcode
+
+
+def playback_request(play: bool, speed: float, seek_ns: int | None, request_id: str) -> bytes:
+    """A Playback Control Request: command (0 play, 1 pause), speed f32, had-seek u8, seek time u64, request id."""
+    rid = request_id.encode()
+    return (
+        struct.pack(
+            "<BBfBQI", PLAYBACK_CONTROL_REQUEST, 0 if play else 1, speed, seek_ns is not None, seek_ns or 0, len(rid)
+        )
+        + rid
+    )
