@@ -14,6 +14,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("robotd.config",),
     ("robotd.logs",),
     ("robotd.estimation",),
+    ("robotd.viz",),
     ("robotd.daemon",),
     ("robotd.sim",),
     ("robotd.offline",),

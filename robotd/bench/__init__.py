@@ -10,6 +10,7 @@ BENCHMARK_MODULES: tuple[str, ...] = (
     "robotd.bench.marvelmind",
     "robotd.bench.sim",
     "robotd.bench.daemon",
+    "robotd.bench.viewer",
 )
 
 BENCHMARK_ADDITIONS: dict[str, tuple[str, ...]] = {

@@ -40,7 +40,10 @@ def run_sim(args: argparse.Namespace) -> int:
 
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    config_path = private_config(Path(args.config), out)
+    from robotd.tools.demo import free_tcp_port  # noqa: PLC0415
+
+    # the live view on: the virtual robot is where a person first looks at robotd
+    config_path = private_config(Path(args.config), out, {"viewer": {"enabled": True, "port": free_tcp_port()}})
     stopped: list[tuple[str, int]] = []
     try:
         with stop_signals(), running_robot(config_path, out, args.seed, stopped) as (_children, recorder):
@@ -48,7 +51,10 @@ def run_sim(args: argparse.Namespace) -> int:
             print(f"robotd sim: running; config {config_path}")
             print(f"  teleop:      robotd teleop --config {config_path}")
             print(f"  pose stream: robotd pose --socket {config.pose_socket.path}")
-            print(f"  logs:        {out}/daemon.log, {out}/vhw.log; sensor log {out}/run.jsonl")
+            print(
+                f"  live view:   ws://127.0.0.1:{config.viewer.port} (Foxglove: Open connection > Foxglove WebSocket)"
+            )
+            print(f"  logs:        {out}/daemon.log, {out}/vhw.log; sensor log {out}/run.jsonl, {out}/run.mcap")
             print("Ctrl-C stops both.", flush=True)
             while recorder.is_alive():
                 time.sleep(0.5)

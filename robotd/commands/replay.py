@@ -10,9 +10,9 @@ from pathlib import Path
 
 from robotd.config.model import RobotdConfig, load, parse
 from robotd.logs import logcheck
-from robotd.logs.sensorlog import read_log
 from robotd.offline import librsf
 from robotd.offline.replay import format_table, replay, robot_from_log, write_outputs
+from robotd.viz.mcaplog import read_any_log
 
 # sysexits.h: what a script calling `robotd replay` can tell apart
 EX_DATAERR = 65  # the log cannot be replayed (no events, times going backwards)
@@ -27,9 +27,18 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     rep = subparsers.add_parser(
         "replay", help="replay a sensor log through odometry, the paper's EKF and robotd's EKF; score against truth"
     )
-    rep.add_argument("log", help="sensor log (JSON Lines)")
+    rep.add_argument("log", help="sensor log (JSON Lines, or an MCAP file: .mcap)")
     rep.add_argument("--out", required=True, help="directory for estimates.jsonl and metrics.json")
     rep.add_argument("--config", help="YAML configuration (default: built-in defaults); meta.robot overrides geometry")
+    rep.add_argument("--mcap", metavar="FILE.mcap", help="also write the log and every method's poses as MCAP")
+    rep.add_argument(
+        "--view",
+        nargs="?",
+        const=8765,
+        type=int,
+        metavar="PORT",
+        help="then serve the replay to Foxglove on 127.0.0.1:PORT (8765) with playback controls, until Ctrl-C",
+    )
     rep.set_defaults(handler=run_replay)
     conv = subparsers.add_parser(
         "convert-librsf", help="convert the libRSF Labyrinth UWB dataset folder (CSV) to a sensor log"
@@ -52,7 +61,7 @@ def run_replay(args: argparse.Namespace) -> int:
         print(f"robotd replay: --out {out}: cannot make it a directory: {why}", file=sys.stderr)
         return EX_CANTCREAT
     try:
-        log = read_log(args.log)
+        log = read_any_log(args.log)
     except OSError as error:
         print(f"robotd replay: {args.log}: {error.strerror or error}", file=sys.stderr)
         return EX_NOINPUT
@@ -78,6 +87,10 @@ def run_replay(args: argparse.Namespace) -> int:
         span = log.events[-1].t - log.events[0].t
         rate = span / max(elapsed, 1e-9)
         print(f"{len(log.events)} events, {span:.1f} s of log in {elapsed:.2f} s ({rate:.0f}x real time)")
+    if args.mcap or args.view is not None:
+        from robotd.offline.replay_mcap import write_and_view  # noqa: PLC0415 - the SDK loads only when asked for
+
+        return write_and_view(log, result, config, out=out, mcap=args.mcap, view_port=args.view, written=written)
     print("wrote " + ", ".join(str(path) for path in written))
     return 0
 

@@ -19,8 +19,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     run.add_argument("--config", default=DEFAULT_CONFIG, help=f"configuration file (default {DEFAULT_CONFIG})")
     run.add_argument(
         "--record",
-        metavar="LOG.jsonl",
-        help="write every sensor event to this sensor log; an existing log is kept (LOG.1.jsonl... is written instead)",
+        metavar="LOG.jsonl|FILE.mcap",
+        action="append",
+        default=[],
+        help="write every sensor event to this sensor log; FILE.mcap: as MCAP, with what the daemon publishes to the"
+        " live view (give both to record both); an existing file is kept (LOG.1.jsonl... is written instead)",
     )
     run.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     run.set_defaults(handler=run_daemon_command)
@@ -40,10 +43,25 @@ def run_daemon_command(args: argparse.Namespace) -> int:
     from robotd.daemon.service import run_daemon  # noqa: PLC0415 - keeps `robotd --help` fast
 
     config = load(args.config)
+    records = _records(args.record)
+    if isinstance(records, str):
+        print(f"robotd run: --record: {records}", file=sys.stderr)
+        return 2
     preflight(config)  # the key file and the bind address, as `robotd check-config` checks them
     configure_logging(args.verbose)
     try:
-        return run_daemon(config, Path(args.record) if args.record else None)
+        return run_daemon(config, records.get(".jsonl"), records.get(".mcap"))
     except RecordingError as error:  # before anything started: nothing to stop
         print(f"robotd run: --record: {error}", file=sys.stderr)
         return EX_CANTCREAT
+
+
+def _records(paths: list[str]) -> dict[str, Path] | str:
+    """The recordings asked for by kind (".jsonl": anything but .mcap, ".mcap"), or why they cannot be made."""
+    records: dict[str, Path] = {}
+    for path in map(Path, paths):
+        kind = ".mcap" if path.suffix == ".mcap" else ".jsonl"
+        if kind in records:
+            return f"one {kind} recording at most, got {records[kind]} and {path}"
+        records[kind] = path
+    return records

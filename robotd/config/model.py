@@ -33,6 +33,7 @@ from robotd.config.schema import (
 )
 from robotd.config.sim import SimConfig
 from robotd.config.smallfile import MissingFileError, SmallFileError, read_small_file
+from robotd.config.viewer import ViewerConfig
 from robotd.config.yamltext import parse_yaml
 
 WHEELS = ("front_left", "front_right", "rear_left", "rear_right")
@@ -530,6 +531,7 @@ class RobotdConfig:
     pose_socket: PoseSocketConfig = section(PoseSocketConfig, "Pose output.")
     control: ControlConfig = section(ControlConfig, "Motor control loop.")
     sim: SimConfig = section(SimConfig, "Virtual robot.")
+    viewer: ViewerConfig = section(ViewerConfig, "Live view in Foxglove (robotd.viz).")
 
 
 def _cross_checks(config: RobotdConfig) -> list[str]:

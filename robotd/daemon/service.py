@@ -37,7 +37,7 @@ import pigpio
 
 from drivers.backoff import Backoff
 from drivers.marvelmind.events import Event as MarvelmindEvent
-from drivers.marvelmind.events import FixUnavailable, Position
+from drivers.marvelmind.events import FixUnavailable, Position, StationaryBeacons
 from drivers.marvelmind.reader import MarvelmindReader
 from drivers.pigpiod.client import PigpioCommandError
 from drivers.pigpiod.protocol import ProtocolError
@@ -56,6 +56,7 @@ from robotd.daemon.teleop_socket import TeleopSocket, open_teleop
 from robotd.estimation.estimator import Estimator
 from robotd.kinematics import Geometry, Twist
 from robotd.logs import sensorlog
+from robotd.viz import live
 
 log = logging.getLogger("robotd")
 
@@ -108,6 +109,7 @@ class Daemon:
         motors_factory: MotorsFactory | None = None,
         deadman_factory: DeadmanFactory | None = None,
         hardware: Hardware | None = None,
+        record_mcap: Path | None = None,
     ) -> None:
         self.config = config
         self.clock = clock
@@ -158,7 +160,11 @@ class Daemon:
         self._counters: dict[str, int] = {
             "control_steps": 0, "motor_failures": 0, "teleop_commands": 0, "stall_faults": 0,
         }  # fmt: skip
-        self._recorder = self._open_recorder(record)
+        self._recorder: live.EventSink | None = self._open_recorder(record)
+        # the live view and the MCAP recording (robotd.viz): every sensor log event reaches it through the recorder
+        self.viewer = live.viewer_for(config, self.geometry, record_mcap, clock)
+        if self.viewer is not None:
+            self._recorder = live.Tee(self._recorder, self.viewer, daemon_meta(config))
 
     # --- producers' callbacks (on the loop) -----------------------------------------------------------------
 
@@ -175,8 +181,10 @@ class Daemon:
 
     def _on_marvelmind(self, event: MarvelmindEvent) -> None:
         if isinstance(event, Position):
-            self.estimator.on_fix(event.arrival, event.x, event.y, event.t_meas)
+            diagnostics = self.estimator.on_fix(event.arrival, event.x, event.y, event.t_meas)
             self._last_fix_arrival = event.arrival
+            if self.viewer is not None:
+                self.viewer.fix(event.arrival, event.x, event.y, diagnostics)
             if self._recorder is not None:
                 self._recorder.write(sensorlog.IpsFix(event.arrival, event.x, event.y, event.z, event.t_meas))
             self._publish_pose()  # a fix reaches the pose socket now, not at the next period
@@ -184,6 +192,8 @@ class Daemon:
             self.estimator.on_fix_lost(event.arrival)
             if self._recorder is not None:
                 self._recorder.write(sensorlog.IpsLost(event.arrival))
+        elif isinstance(event, StationaryBeacons) and self.viewer is not None:
+            self.viewer.beacons(event)
 
     def _on_teleop(self, message: TeleopMessage) -> None:
         teleop = self._teleop
@@ -282,6 +292,8 @@ class Daemon:
             now = self.clock()
             self.control_periods.tick(now)
             self._control_step(now)
+            if self.viewer is not None:
+                self.viewer.control(now, self.controller.last, self._wheel_speeds)
             self.deadman.bump()  # from here, not from a task of its own: a loop that stops stepping stops bumping
             next_tick += period
             if next_tick < now:  # the loop stalled: restart the schedule rather than bursting
@@ -378,7 +390,10 @@ class Daemon:
             now = self.clock()
             if now >= next_status:
                 next_status = now + self.status_period_s
-                self.pose_server.publish(self._status_message(now))
+                status = self._status_message(now)
+                self.pose_server.publish(status)
+                if self.viewer is not None:
+                    self.viewer.status(status)
 
     def _publish_pose(self) -> None:
         now = self.clock()
@@ -399,6 +414,8 @@ class Daemon:
         # can tell which fix a pose contains (and measure the fix-to-pose latency)
         message["fix_arrival_t"] = self._last_fix_arrival
         self.pose_server.publish(message)
+        if self.viewer is not None:
+            self.viewer.pose(message)
 
     def _status_message(self, now: float) -> dict[str, Any]:
         encoders = self.encoders.counters
@@ -428,6 +445,8 @@ class Daemon:
         }
         if self._recorder is not None:
             drivers["recorder"] = self._recorder.counters()
+        if self.viewer is not None:
+            drivers["viewer"] = self.viewer.counters()
         return posesock.status_message(
             t=now, stamp=time.time(), drivers=drivers, filter_diagnostics=dict(self.estimator.counters)
         )
@@ -486,17 +505,26 @@ def _leaves(group: BaseExceptionGroup[Exception]) -> list[Exception]:
     return leaves
 
 
-def run_daemon(config: RobotdConfig, record_path: Path | None = None) -> int:
+def run_daemon(config: RobotdConfig, record_path: Path | None = None, record_mcap: Path | None = None) -> int:
     """Run the daemon in a fresh event loop; returns the process exit status.
 
-    `record_path` names the sensor log to create (never an existing file: see `robotd.daemon.recorder.create_log`, which
-    raises RecordingError when it cannot).
+    `record_path` names the sensor log to create, `record_mcap` the MCAP recording (never an existing file: see
+    `robotd.daemon.recorder.create_log`, which raises RecordingError when it cannot).
     """
+    if record_mcap is not None:
+        stream, created_mcap = create_log(record_mcap)
+        stream.close()  # the name is ours now; the SDK's MCAP writer opens it again, in binary
+        log.info(
+            "recording MCAP to %s%s",
+            created_mcap,
+            "" if created_mcap == record_mcap else f": {record_mcap} exists and is kept",
+        )
+        record_mcap = created_mcap
     if record_path is None:
-        return asyncio.run(Daemon(config).run())
+        return asyncio.run(Daemon(config, record_mcap=record_mcap).run())
     record, created = create_log(record_path)
     if created != record_path:
         log.info("recording to %s: %s exists and is kept", created, record_path)
     else:
         log.info("recording to %s", created)
-    return asyncio.run(Daemon(config, record=record).run())
+    return asyncio.run(Daemon(config, record=record, record_mcap=record_mcap).run())

@@ -88,6 +88,11 @@ def _free_port(kind: int) -> int:
         return int(probe.getsockname()[1])
 
 
+def free_tcp_port() -> int:
+    """A TCP port on loopback that nobody holds right now."""
+    return _free_port(socket.SOCK_STREAM)
+
+
 def private_config(base: Path, out: Path, overrides: dict[str, dict[str, Any]] | None = None) -> Path:
     """A copy of `base` with free loopback ports, every path inside `out` and some keys of some sections changed."""
     raw: dict[str, Any] = yaml.safe_load(base.read_text(encoding="utf-8")) or {}
@@ -243,9 +248,18 @@ def running_robot(
         _wait_for(device.exists, 20.0, "the virtual robot", children)
         # the demo replaces its own outputs: the daemon never overwrites a log, it would record to run.1.jsonl
         (out / "run.jsonl").unlink(missing_ok=True)
+        (out / "run.mcap").unlink(missing_ok=True)  # the run as MCAP too: the log and what the daemon published
         children.start(
             "robotd run",
-            ["run", "--config", str(config_path), "--record", str(out / "run.jsonl")],
+            [
+                "run",
+                "--config",
+                str(config_path),
+                "--record",
+                str(out / "run.jsonl"),
+                "--record",
+                str(out / "run.mcap"),
+            ],
             out / "daemon.log",
         )
 
@@ -299,5 +313,6 @@ def run_demo(base_config: Path, out_dir: Path, plan: DemoPlan, out: TextIO = sys
             raise RuntimeError(f"the daemon exited with status {status}: see {out_dir / 'daemon.log'}")
     merged = merged_log(out_dir / "run.jsonl", out_dir / "truth.jsonl", out_dir / "log.jsonl")
     metrics = report(merged, out_dir / "poses.jsonl", out_dir, load(config_path), out)
+    out.write(f"robotd demo: the run as MCAP: {out_dir / 'run.mcap'} (open it in Foxglove: see the README)\n")
     out.write(f"robotd demo: done in {time.monotonic() - started:.1f} s; results in {out_dir}\n")
     return metrics

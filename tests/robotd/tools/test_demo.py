@@ -13,6 +13,9 @@ import pytest
 from paths import REPO
 from process_support import processes_mentioning
 
+from robotd.logs.sensorlog import read_log
+from robotd.viz.mcaplog import read_mcap_log
+
 
 def demo(out: Path, *extra: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
@@ -36,6 +39,8 @@ def test_a_short_square_through_the_daemon_is_scored_and_leaves_no_process(tmp_p
     assert "robotd EKF (live daemon)" in (out / "results.md").read_text()
     for name in ("fig6_trajectories.png", "fig7_errors.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the run as MCAP too (issue 15): the same sensor log as the JSON Lines one, read back with the mcap reader
+    assert read_mcap_log(out / "run.mcap").events == read_log(out / "run.jsonl").events
     assert processes_mentioning(str(out)) == []
 
 
