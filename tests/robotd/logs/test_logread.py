@@ -106,8 +106,10 @@ def test_unknown_types_are_counted_not_reported_and_optional_fields_take_their_d
     assert not log.problems
     assert log.unknown_types == {"lidar": 2, "imu": 1}
     fix, truth = log.events
-    assert fix.t == 1.3 and (fix.x, fix.y, fix.z) == (1.0, 2.0, 0.0)  # at z = 0
-    assert not fix.timed and fix.stated_t == 1.3  # no measurement time: its delay is unknown, stated at arrival
+    assert fix.t == 1.3
+    assert (fix.x, fix.y, fix.z) == (1.0, 2.0, 0.0)
+    assert not fix.timed
+    assert fix.stated_t == 1.3
     assert encode(fix) == '{"type":"ips","t":1.3,"x":1.0,"y":2.0,"z":0.0}'  # written back without one
     assert isinstance(truth, Truth)
     assert math.isnan(truth.theta)
