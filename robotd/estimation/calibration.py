@@ -232,7 +232,8 @@ class Calibrator:
         self.cov = 0.5 * (covariance + covariance.T)
         self.windows += 1
         # what fusing many fixes cannot average away: their error shared from one fix to the next (smoothed)
-        correlated = sigma2 * rho
+        # (only a correlation beyond chance, 2 / sqrt(n): the path's own small deformations by slip are not the fixes')
+        correlated = sigma2 * rho if rho > 2.0 / math.sqrt(int(keep.sum())) else 0.0
         self.fix_correlated_var += (correlated - self.fix_correlated_var) * (1.0 if self.windows == 1 else 0.3)
         self._clamp()
         return True

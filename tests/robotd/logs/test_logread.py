@@ -106,6 +106,7 @@ def test_unknown_types_are_counted_not_reported_and_optional_fields_take_their_d
     assert not log.problems
     assert log.unknown_types == {"lidar": 2, "imu": 1}
     fix, truth = log.events
+    assert isinstance(fix, IpsFix)
     assert fix.t == 1.3
     assert (fix.x, fix.y, fix.z) == (1.0, 2.0, 0.0)
     assert not fix.timed
