@@ -10,6 +10,7 @@ from pathlib import Path
 
 from robotd.config.model import load
 from robotd.sim.scenarios import SCENARIOS
+from robotd.sim.variants import VARIANTS
 
 DEFAULT_SIM_CONFIG = "config/sim.yaml"
 MAX_WORKERS = 2
@@ -21,7 +22,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "experiment",
         help="run a scenario offline over seeds; write results.md, results.json and the paper's Fig. 6 and 7",
     )
-    exp.add_argument("scenario", choices=SCENARIOS, help="what the remote control does")
+    exp.add_argument("scenario", choices=SCENARIOS + VARIANTS, help="what the remote control does")
     exp.add_argument("--loops", type=int, default=3, help="repetitions of the scenario per run (default 3)")
     exp.add_argument("--seeds", type=int, default=10, help="number of seeded runs (default 10)")
     exp.add_argument("--first-seed", type=int, default=None, help="first seed (default: the configuration's sim.seed)")

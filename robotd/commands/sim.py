@@ -9,6 +9,7 @@ from pathlib import Path
 
 from robotd.config.model import WHEELS, load
 from robotd.sim.scenarios import SCENARIOS
+from robotd.sim.variants import VARIANTS
 
 DEFAULT_SIM_CONFIG = "config/sim.yaml"
 
@@ -18,7 +19,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     simulate = subparsers.add_parser(
         "simulate", help="run a scenario on the virtual robot in simulated time and write its sensor log with truth"
     )
-    simulate.add_argument("scenario", choices=SCENARIOS, help="what the remote control does")
+    simulate.add_argument("scenario", choices=SCENARIOS + VARIANTS, help="what the remote control does")
     simulate.add_argument("--out", required=True, metavar="LOG.jsonl", help="sensor log to write")
     simulate.add_argument("--seed", type=int, default=None, help="seed (default: the configuration's sim.seed)")
     simulate.add_argument("--loops", type=int, default=3, help="repetitions of the scenario (default 3)")

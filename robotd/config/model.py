@@ -336,6 +336,34 @@ class EkfConfig:
         "Below this speed a fix does not correct the heading: at rest a fix says nothing about it.",
         non_negative,
     )
+    calibrate: bool = setting(
+        True,
+        "Learn from the fixes the odometry's scales (forward, sideways, rotation) and the delay of fixes that carry no"
+        " measurement time, window by window of travel, bounded and slowly varying (robotd/estimation/calibration.py).",
+    )
+    odometry_scale: tuple[float, float, float] = setting(
+        (1.0, 1.0, 1.0),
+        "Starting multipliers of the odometry's vx, vy and wz (effective wheel radius over the configured one, and so"
+        " on; `robotd tune` fits them). A calibration saved by the daemon (calibration_file) takes precedence.",
+        each(in_range(0.5, 2.0)),
+    )
+    scale_sigma: float = setting(
+        0.1, "Standard deviation of the starting odometry scales (how far from them calibration may look).", positive
+    )
+    scale_limit: float = setting(
+        0.25, "Learnt odometry scales stay within 1 +- this.", in_range(0.0, 0.5, above_low=True)
+    )
+    latency_max_s: float = setting(
+        0.5, "The learnt delay of fixes without a measurement time stays within [0, this].", in_range(0.0, 5.0)
+    )
+    calibration_window_m: float = setting(
+        1.5, "Travel per calibration window (each window's odometry path is fitted to its fixes).", in_range(0.2, 100.0)
+    )
+    calibration_file: str = setting(
+        "",
+        "Where the daemon keeps the learnt calibration across restarts (the unit's StateDirectory, e.g."
+        " /var/lib/robotd/calibration.json); '' keeps it in memory only.",
+    )
     paper_sigma_v_mps: float = setting(
         0.1, "Paper's filter: eq. 9's speed noise std, applied to vx and vy per prediction step.", non_negative
     )
@@ -365,6 +393,8 @@ def paper_preset(ekf: EkfConfig) -> EkfConfig:
         adaptive_ips_noise=False,
         heading_align_m=0.0,
         heading_min_speed_mps=0.0,
+        calibrate=False,
+        odometry_scale=(1.0, 1.0, 1.0),
     )
 
 

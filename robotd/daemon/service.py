@@ -44,7 +44,7 @@ from drivers.pigpiod.protocol import ProtocolError
 from drivers.wheels.encoders import EncoderSource, WheelTicks
 from drivers.wheels.motors import MotorOutputs
 from robotd.config.model import RobotdConfig
-from robotd.daemon import posesock
+from robotd.daemon import calibration_store, posesock
 from robotd.daemon.control import MotionController, StallFault
 from robotd.daemon.deadman_keeper import DeadmanFactory, DeadmanKeeper
 from robotd.daemon.hardware import Hardware, build_hardware
@@ -115,7 +115,15 @@ class Daemon:
         self.clock = clock
         robot = config.robot
         self.geometry = Geometry(robot.wheel_radius_m, robot.lx_m, robot.ly_m)
-        self.estimator = Estimator(config.ekf, self.geometry, robot.ips_offset_m, config.encoders.counts_per_rev)
+        self.estimator = Estimator(
+            config.ekf,
+            self.geometry,
+            robot.ips_offset_m,
+            config.encoders.counts_per_rev,
+            default_latency_s=config.marvelmind.default_latency_s,
+            calibration=calibration_store.load(config.ekf.calibration_file),
+        )
+        self._calibration_keeper = calibration_store.CalibrationKeeper(config.ekf.calibration_file)
         self.controller = MotionController(
             self.geometry,
             config.control,
@@ -181,12 +189,14 @@ class Daemon:
 
     def _on_marvelmind(self, event: MarvelmindEvent) -> None:
         if isinstance(event, Position):
-            diagnostics = self.estimator.on_fix(event.arrival, event.x, event.y, event.t_meas)
+            # a time-shift of 0 means the beacon did not say: the estimator learns the delay (NaN: no measurement time)
+            t_meas = math.nan if event.time_shift_s == 0.0 else event.t_meas
+            diagnostics = self.estimator.on_fix(event.arrival, event.x, event.y, t_meas)
             self._last_fix_arrival = event.arrival
             if self.viewer is not None:
                 self.viewer.fix(event.arrival, event.x, event.y, diagnostics)
             if self._recorder is not None:
-                self._recorder.write(sensorlog.IpsFix(event.arrival, event.x, event.y, event.z, event.t_meas))
+                self._recorder.write(sensorlog.IpsFix(event.arrival, event.x, event.y, event.z, t_meas))
             self._publish_pose()  # a fix reaches the pose socket now, not at the next period
         elif isinstance(event, FixUnavailable):
             self.estimator.on_fix_lost(event.arrival)
@@ -252,6 +262,7 @@ class Daemon:
         finally:
             self._zero_motors()  # first, whatever happened
             await self.deadman.uninstall()
+            self._calibration_keeper.maybe_save(self.estimator.calibration, self.clock(), force=True)
             self.notifier.stopping("stopping")
             for signum in SHUTDOWN_SIGNALS:
                 loop.remove_signal_handler(signum)
@@ -447,9 +458,10 @@ class Daemon:
             drivers["recorder"] = self._recorder.counters()
         if self.viewer is not None:
             drivers["viewer"] = self.viewer.counters()
-        return posesock.status_message(
-            t=now, stamp=time.time(), drivers=drivers, filter_diagnostics=dict(self.estimator.counters)
-        )
+        calibration = self.estimator.calibration
+        self._calibration_keeper.maybe_save(calibration, now)
+        diagnostics = {**self.estimator.counters, "calibration": calibration.as_dict()}
+        return posesock.status_message(t=now, stamp=time.time(), drivers=drivers, filter_diagnostics=diagnostics)
 
     async def _health_loop(self) -> None:
         """Ping the watchdog while the control loop and the filter make progress; say how things stand."""

@@ -32,6 +32,7 @@ from math import isfinite
 from robotd import kinematics
 from robotd.config.model import EkfConfig
 from robotd.estimation import ekf
+from robotd.estimation.calibration import Calibration, CalibrationLimits, Calibrator
 from robotd.estimation.fixgate import Diagnostics, FixGate
 from robotd.estimation.heading import HeadingAligner, HeadingCheck, RotationFit
 from robotd.estimation.history import Anchor, FixRecord, History, Predictor, State
@@ -39,6 +40,8 @@ from robotd.estimation.modes import Modes, PositionMode, Verdict
 from robotd.estimation.track import OdometryTrack, Twist3
 from robotd.estimation.wheelsteps import TickKinematics, WheelFeed
 
+LATENCY_PRIOR_SIGMA_S = 0.1  # how far the delay of fixes without a measurement time may be from the assumed one
+TIME_CHECK_SIGMA_S = 0.03  # how far a fix's stated measurement time may be off
 TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
 
 
@@ -68,7 +71,12 @@ class Estimator:
         geometry: kinematics.Geometry,
         ips_offset_m: tuple[float, float],
         counts_per_rev: int,
+        *,
+        default_latency_s: float = 0.05,
+        calibration: Calibration | None = None,
     ) -> None:
+        """`default_latency_s`: the delay assumed at first for fixes without a measurement time; `calibration`: where
+        the odometry calibration starts (a saved one), else from the configuration."""
         c = self.config = ekf_config
         self.geometry = geometry
         self.counts_per_rev = counts_per_rev
@@ -84,6 +92,20 @@ class Estimator:
         self.modes = Modes(heading_known=c.initial_sigma[2] <= c.unknown_heading_sigma_rad)
         self._track = OdometryTrack(midpoint=c.midpoint_heading)
         self._predictor = Predictor(noise, self.modes, midpoint=c.midpoint_heading)
+        if calibration is None:
+            kx, ky, kw = c.odometry_scale
+            sigmas = (c.scale_sigma, c.scale_sigma, c.scale_sigma, LATENCY_PRIOR_SIGMA_S, TIME_CHECK_SIGMA_S)
+            calibration = Calibration(kx, ky, kw, default_latency_s, 0.0, sigmas)
+        self._calibrator: Calibrator | None = None
+        if c.calibrate:
+            limits = CalibrationLimits(c.scale_limit, c.latency_max_s, c.calibration_window_m)
+            self._calibrator = Calibrator(calibration, limits, self._offset)
+            calibration = self._calibrator.current
+        else:
+            sigmas = (0.0, 0.0, 0.0, 0.0, 0.0)
+            calibration = Calibration(*c.odometry_scale, default_latency_s, 0.0, sigmas)
+        self._calibration = calibration
+        self._predictor.scale = (calibration.kx, calibration.ky, calibration.kw)
         x0, y0, th0 = c.initial_pose
         first = Anchor(-math.inf, x0, y0, ekf.wrap_angle(th0), ekf.cov_diag(*c.initial_sigma), None)
         self._history = History(self._track, self._predictor, first, c.history_s, keep_past=c.latency_compensation)
@@ -108,6 +130,8 @@ class Estimator:
                 "dropped_out_of_order",
                 "fixes_too_old",
                 "late_fixes",
+                "untimed_fixes",
+                "calibration_windows",
             ),
             0,
         )
@@ -136,8 +160,13 @@ class Estimator:
             return
         self.counters["twists"] += 1
         track = self._track
-        held = (track.hx[-1], track.hy[-1], track.hw[-1]) if len(track) else (0.0, 0.0, 0.0)
-        self._step_to(t, held, (vx, vy, wz))
+        if not len(track):
+            self._step_to(t, (vx, vy, wz), (vx, vy, wz))
+            return
+        held = (track.hx[-1], track.hy[-1], track.hw[-1])
+        # each twist is a sample of the velocity at its time: the motion since the previous sample is their mean
+        # (the trapezoid rule; holding the older sample would lag the motion by half a sample period)
+        self._step_to(t, (0.5 * (held[0] + vx), 0.5 * (held[1] + vy), 0.5 * (held[2] + wz)), (vx, vy, wz))
 
     def on_fix_lost(self, t: float) -> None:  # noqa: ARG002 - the daemon's interface carries the time
         """A position packet flagged "coordinates unavailable": never fused, only counted."""
@@ -159,6 +188,8 @@ class Estimator:
             if start < t:
                 track.append(t, (0.0, 0.0, 0.0), held)
         elif t > track.t[-1]:
+            if self._calibrator is not None:
+                self._calibrator.on_step(track.t[-1], t, step_u)
             track.append(t, step_u, held)
         else:
             track.hold(held)
@@ -187,8 +218,14 @@ class Estimator:
         if not (isfinite(t) and isfinite(x) and isfinite(y)):
             counters["dropped_non_finite"] += 1
             return None
-        if not self.config.latency_compensation or not isfinite(t_meas) or t_meas > t:
+        timed = isfinite(t_meas)  # a fix without a measurement time (NaN) is stated at its arrival
+        stated = t_meas if timed else t
+        if not timed:
+            counters["untimed_fixes"] += 1
+        if not self.config.latency_compensation or t_meas > t:
             t_meas = t
+        elif not timed:
+            t_meas = t - self._calibration.latency_s  # the learnt delay
         history, track = self._history, self._track
         if history.times[0] == -math.inf:
             self._set_clock(t_meas)
@@ -209,6 +246,11 @@ class Estimator:
         prior = history.state_at(anchors[k], t_meas, self._pending)
         px, py, pth, pp = prior
         r = gate.r
+        if not timed and self.config.latency_compensation:
+            # the delay is known only to within its sigma: the fix's noise along the motion grows by speed x that
+            kx, ky, _ = self._predictor.scale
+            u = track.twist_at(t_meas) or self._pending()
+            r += (self._calibration.sigmas[3] ** 2) * ((kx * u[0]) ** 2 + (ky * u[1]) ** 2)
         inn = ekf.innovation(px, py, pth, pp, x, y, r, self._offset[0], self._offset[1])
         verdict = gate.judge(t_meas, inn, r)
         before = self.modes.on_verdict(verdict)
@@ -226,11 +268,28 @@ class Estimator:
         history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
+        if verdict is Verdict.ACCEPTED and self._calibrator is not None:
+            self._calibrate(stated, x, y, timed=timed)
         if aligner.enabled and track.t and track.dist[-1] >= aligner.next_fit:
             self._maybe_realign()
         return Diagnostics(
             t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)
         )
+
+    def _calibrate(self, stated: float, x: float, y: float, *, timed: bool) -> None:
+        """Give an accepted fix to the calibration; take its new values when a window's fit changed them."""
+        calibrator = self._calibrator
+        if calibrator is None or not calibrator.on_fix(stated, x, y, timed=timed):
+            return
+        calibration = self._calibration = calibrator.current
+        self.counters["calibration_windows"] += 1
+        self._predictor.scale = (calibration.kx, calibration.ky, calibration.kw)
+        self._newest = None  # states carried with the old scales
+
+    @property
+    def calibration(self) -> Calibration:
+        """The odometry scales and fix delays in use, with their uncertainty."""
+        return self._calibration
 
     def _remake(self, state: State, old: Anchor) -> Anchor:
         """An anchor made again at its time from the state there: its fix fused again, its seed moved again."""
@@ -337,11 +396,17 @@ class Estimator:
         return x, y, th, p
 
     def _extrapolate(self, t: float | None) -> tuple[float, float, float, float, Twist3, ekf.Cov]:
-        """Time, pose, twist in force and P of the newest state carried forward to t (mean only) when t is later."""
+        """Time, pose, twist in force and P of the newest state carried forward to t (mean only) when t is later.
+
+        P includes the fixes' correlated error (calibration.fix_correlated_var): the filter fuses fixes as if their
+        errors were independent, which averages away an error they share; the estimate cannot be surer than that.
+        """
         newest_step = self._track.t[-1] if self._track.t else -math.inf
         when = max(newest_step, self._history.newest.t)
         x, y, th, p = self._state_at_newest_step()
-        u = self._pending()
+        raw = self._pending()
+        kx, ky, kw = self._predictor.scale
+        u = (raw[0] * kx, raw[1] * ky, raw[2] * kw)
         if t is None:
             t = max(when, self._wheels.last_t)
         if t > when and math.isfinite(when):
@@ -351,6 +416,9 @@ class Estimator:
             x, y = x + dx, y + dy
             th = ekf.wrap_angle(th + wz * dt)
             when = t
+        shared = self._calibration.fix_correlated_var
+        if shared > 0.0:
+            p = (p[0] + shared, p[1], p[2], p[3] + shared, p[4], p[5])
         return when, x, y, th, u, p
 
 

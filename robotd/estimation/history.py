@@ -73,10 +73,13 @@ class Predictor:
         self.noise = noise
         self.modes = modes
         self.midpoint = midpoint
+        self.scale: Twist3 = (1.0, 1.0, 1.0)  # the odometry calibration's multipliers of vx, vy, wz
 
     def move(self, state: State, u: Twist3, dt: float) -> State:
-        """The state moved by twist u for dt (> 0), with the process noise of that motion."""
-        vx, vy, wz = u
+        """The state moved by the odometry twist u (calibrated by `scale`) for dt (> 0), with the process noise of
+        that motion."""
+        kx, ky, kw = self.scale
+        vx, vy, wz = u[0] * kx, u[1] * ky, u[2] * kw
         x, y, theta, p = ekf.predict(
             state[0], state[1], state[2], state[3], vx, vy, wz, dt, self.noise, midpoint=self.midpoint
         )

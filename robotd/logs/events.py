@@ -48,17 +48,33 @@ class TwistSample(msgspec.Struct, frozen=True, gc=False, tag="twist"):
 
 
 class IpsFix(msgspec.Struct, frozen=True, gc=False, tag="ips"):
-    """A valid IPS fix of the beacon (m); t_meas is when it was measured (the arrival time t when the line has none)."""
+    """A valid IPS fix of the beacon (m); t_meas is when it was measured, NaN when the line has none (the fix's delay
+    is unknown: the filter learns it; `stated_t` is then its arrival)."""
 
     t: float
     x: float
     y: float
     z: float = 0.0
-    t_meas: float = math.nan  # (NaN only until __post_init__: JSON has no NaN, so it means "absent")
+    t_meas: float = math.nan  # JSON has no NaN: absent from the line
 
-    def __post_init__(self) -> None:
-        if math.isnan(self.t_meas):
-            msgspec.structs.force_setattr(self, "t_meas", self.t)
+    @property
+    def timed(self) -> bool:
+        """Whether the fix carries its measurement time."""
+        return not math.isnan(self.t_meas)
+
+    @property
+    def stated_t(self) -> float:
+        """Its measurement time when it has one, else its arrival time."""
+        return self.t if math.isnan(self.t_meas) else self.t_meas
+
+
+class _UntimedFix(msgspec.Struct, frozen=True, gc=False, tag="ips"):
+    """How an IpsFix without a measurement time is written: the line leaves t_meas out."""
+
+    t: float
+    x: float
+    y: float
+    z: float
 
 
 class IpsLost(msgspec.Struct, frozen=True, gc=False, tag="ips_lost"):
@@ -105,7 +121,10 @@ def rounded(record: Record) -> Record:
 
 def encode(record: Record) -> str:
     """One record as its JSON line (without the newline), numbers rounded to DECIMALS."""
-    return _encoder.encode(rounded(record)).decode()
+    line = rounded(record)
+    if type(line) is IpsFix and math.isnan(line.t_meas):
+        return _encoder.encode(_UntimedFix(line.t, line.x, line.y, line.z)).decode()
+    return _encoder.encode(line).decode()
 
 
 __all__ = [

@@ -114,7 +114,9 @@ def _event_problem(event: Event) -> str | None:
     """What is wrong with a fix, twist or command's numbers (None when nothing)."""
     named: dict[str, float]
     if type(event) is IpsFix:
-        named = {"x": event.x, "y": event.y, "z": event.z, "t_meas": event.t_meas}
+        named = {"x": event.x, "y": event.y, "z": event.z}
+        if not math.isnan(event.t_meas):  # (NaN: the line has no measurement time, not a fault)
+            named["t_meas"] = event.t_meas
     elif type(event) is Truth:
         # (a truth without heading has theta NaN: the format's "none", not a fault)
         named = (

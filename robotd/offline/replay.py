@@ -1,10 +1,9 @@
 """Replay a sensor log through odometry alone, the paper's filter and robotd's filter, and score them against truth.
 
-Every method sees the same events in arrival order; an estimate is taken every `OUTPUT_PERIOD_S` of log time (at
-the first event at least that long after the previous estimate: the daemon's pose stream), from the events that
-arrived until then (causal). Odometry alone is given the
-true initial pose (its heading fitted to the first metre of truth when truth has none): the most favourable start,
-so that it is a fair baseline. The filters start from the configuration. The baselines exist only to be scored: a
+Every method sees the same events in arrival order; an estimate is taken at every odometry input (wheel sample or
+twist; at every fix in a log without inputs), from the events that arrived until then (causal). Odometry alone is
+given the true initial pose (its heading fitted to the first metre of truth when truth has none): the most favourable
+start, so that it is a fair baseline. The filters start from the configuration. The baselines exist only to be scored: a
 log without truth runs robotd's filter alone (their tracks stay empty).
 """
 
@@ -21,15 +20,15 @@ import numpy as np
 from robotd import kinematics
 from robotd.config.model import RobotdConfig, paper_preset
 from robotd.estimation import ekf
+from robotd.estimation.calibration import Calibration
 from robotd.estimation.ekf import Cov, wrap_angle
 from robotd.estimation.estimator import Diagnostics, Estimator
 from robotd.estimation.heading import fit_rotation
-from robotd.estimation.wheelsteps import PERIOD_SLACK_S
 from robotd.logs.sensorlog import IpsFix, IpsLost, SensorLog, Truth, TwistSample, Wheels
+from robotd.offline.consistency import Consistency, consistency
 from robotd.offline.estimates import write_estimates
 from robotd.offline.metrics import ErrorStats, Trajectory, fixes_trajectory, score
 
-OUTPUT_PERIOD_S = 0.05  # the daemon's default pose rate (pose_socket.rate_hz: 20)
 METHODS = ("odometry", "ips", "paper_ekf", "ekf")
 
 
@@ -71,6 +70,8 @@ class ReplayResult:
     odometry: Trajectory
     fixes: list[tuple[float, float, float]]
     metrics: dict[str, ErrorStats | None] | None
+    consistency: dict[str, Consistency]  # robotd's filter always (NIS); the paper's too with truth
+    calibration: Calibration  # robotd's filter's at the end of the log
     counters: dict[str, int]
     diagnostics: list[Diagnostics]
     problems: list[str]
@@ -99,7 +100,7 @@ def robot_from_log(
 
     geometry = kinematics.Geometry(
         number("wheel_radius", config.robot.wheel_radius_m, 1e-3, 10.0),
-        number("lx", config.robot.lx_m, 1e-3, 100.0),
+        number("lx", config.robot.lx_m, 0.0, 100.0),  # 0: a differential-drive base
         number("ly", config.robot.ly_m, 1e-3, 100.0),
     )
     cpr = int(number("counts_per_rev", config.encoders.counts_per_rev, 1.0, 1e9))
@@ -129,7 +130,7 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     truth_samples = [(e.t, e.x, e.y, e.theta) for e in events if isinstance(e, Truth)]
     truth = Trajectory.from_samples(truth_samples) if truth_samples else None
     scored = truth is not None  # the baselines exist only to be scored
-    robotd = Estimator(config.ekf, geometry, offset, cpr)
+    robotd = Estimator(config.ekf, geometry, offset, cpr, default_latency_s=config.marvelmind.default_latency_s)
     paper = Estimator(paper_preset(config.ekf), geometry, offset, cpr) if scored else None
     odometry = None
     if scored:
@@ -138,11 +139,10 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     filters = tuple(est for est in (robotd, paper, odometry) if est is not None)
     taken = (_Estimates(), _Estimates(), _Estimates())  # robotd's, the paper's, odometry's
     outputs = [(taken[0], robotd)] + ([(taken[1], paper)] if paper is not None else [])
-    # an output every OUTPUT_PERIOD_S of input time (wheel samples, twists; fixes only in a log without inputs)
+    # an output at every input (wheel samples, twists; fixes only in a log without inputs)
     inputs = any(type(e) is Wheels or type(e) is TwistSample for e in events)
     fixes: list[tuple[float, float, float]] = []
     diagnostics: list[Diagnostics] = []
-    last_out = -math.inf
     for event in events:
         if isinstance(event, Wheels):
             for est in filters:
@@ -156,8 +156,8 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
                 diagnostics.append(diagnostic)
             if paper is not None:
                 paper.on_fix(event.t, event.x, event.y, event.t_meas)
-            if math.isfinite(event.x) and math.isfinite(event.y) and math.isfinite(event.t_meas):
-                fixes.append((event.t_meas, event.x, event.y))
+            if math.isfinite(event.x) and math.isfinite(event.y) and math.isfinite(event.stated_t):
+                fixes.append((event.stated_t, event.x, event.y))
             if inputs:
                 continue
         else:
@@ -167,19 +167,19 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
                     paper.on_fix_lost(event.t)
             continue
         t = event.t
-        if t - last_out >= OUTPUT_PERIOD_S - PERIOD_SLACK_S:
-            last_out = t
-            for estimates, est in outputs:
-                position = est.position(t)
-                if position is not None:
-                    estimates.append(t, position)
-            if odometry is not None:  # never placed by a fix: the initial pose carried
-                pose = odometry.pose(t)
-                taken[2].append(t, (pose.x, pose.y, pose.theta, None))
+        for estimates, est in outputs:
+            position = est.position(t)
+            if position is not None:
+                estimates.append(t, position)
+        if odometry is not None:  # never placed by a fix: the initial pose carried
+            pose = odometry.pose(t)
+            taken[2].append(t, (pose.x, pose.y, pose.theta, None))
     _place_odometry(taken[2], truth)
     ours, papers, odometry_alone = (estimates.trajectory() for estimates in taken)
     metrics = None
+    honesty = {"ekf": consistency(truth, ours, taken[0].cov, diagnostics)}
     if truth is not None:
+        honesty["paper_ekf"] = consistency(truth, papers, taken[1].cov, ())
         metrics = {
             "odometry": score(truth, odometry_alone),
             "ips": score(truth, fixes_trajectory(fixes, offset, truth)),
@@ -193,6 +193,8 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
         odometry=odometry_alone,
         fixes=fixes,
         metrics=metrics,
+        consistency=honesty,
+        calibration=robotd.calibration,
         counters=dict(robotd.counters),
         diagnostics=diagnostics,
         problems=list(log.problems) + problems,
@@ -234,7 +236,16 @@ def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
             stream, zip(e.t.tolist(), e.x.tolist(), e.y.tolist(), e.theta.tolist(), result.ekf_cov, strict=True)
         )
     if result.metrics is not None:
-        metrics = {name: (stats.as_dict() if stats is not None else None) for name, stats in result.metrics.items()}
+        metrics: dict[str, dict[str, float | int | None] | None] = {
+            name: (dict(stats.as_dict()) if stats is not None else None) for name, stats in result.metrics.items()
+        }
+        for name, honesty in result.consistency.items():
+            entry = metrics.get(name)
+            if entry is not None:
+                entry.update(honesty.as_dict())
+        ekf_entry = metrics.get("ekf")
+        if ekf_entry is not None:
+            ekf_entry.update({f"calibration_{key}": value for key, value in result.calibration.as_dict().items()})
         written.append(out_dir / "metrics.json")
         written[-1].write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
     return written
@@ -255,6 +266,9 @@ def format_table(result: ReplayResult) -> str:
             heading = f"{stats.heading_rmse_deg:11.2f}" if stats.heading_rmse_deg is not None else f"{'-':>11s}"
             figures = f"{stats.rmse_m:8.3f} {stats.max_m:8.3f} {stats.final_m:8.3f} {stats.median_m:9.3f}"
             lines.append(f"{name:10s} {figures} {heading}")
+    for name, honesty in result.consistency.items():
+        lines.append(_consistency_line(name, honesty))
+    lines.append(_calibration_line(result.calibration, result.counters))
     c = result.counters
     lines.append(
         f"fixes {c['fixes']}: accepted {c['fixes_accepted']}, rejected {c['fixes_rejected']}, "
@@ -265,6 +279,42 @@ def format_table(result: ReplayResult) -> str:
     if result.unknown_types:
         lines.append("unknown event types: " + ", ".join(f"{k} x{v}" for k, v in sorted(result.unknown_types.items())))
     return "\n".join(lines)
+
+
+def _calibration_line(calibration: Calibration, counters: dict[str, int]) -> str:
+    """The odometry scales and fix delays robotd's filter ended with, each with its standard deviation."""
+    c, s = calibration, calibration.as_dict()
+    delay = (
+        f"latency of fixes without a measurement time {c.latency_s * 1000:.0f} +- {c.sigmas[3] * 1000:.0f} ms "
+        f"({counters['untimed_fixes']} such fixes)"
+        if counters["untimed_fixes"]
+        else f"stated measurement times off by {c.time_error_s * 1000:+.0f} +- {c.sigmas[4] * 1000:.0f} ms"
+    )
+    return (
+        f"calibration ({c.windows} windows): wheel radius x{c.wheel_radius_scale:.4f} "
+        f"+- {s['wheel_radius_scale_sigma']:.4f}, "
+        f"lateral x{c.lateral_scale:.4f} +- {s['lateral_scale_sigma']:.4f}, "
+        f"rotation x{c.rotation_scale:.4f} +- {s['rotation_scale_sigma']:.4f}; {delay}"
+    )
+
+
+def _consistency_line(name: str, honesty: Consistency) -> str:
+    """One line on whether a filter's covariance is honest: NEES against truth, NIS of its accepted fixes."""
+
+    def figure(value: float | None, digits: int) -> str:
+        return "-" if value is None else f"{value:.{digits}f}"
+
+    parts = [f"{name:10s} consistency:"]
+    if honesty.nees_mean is not None:
+        parts.append(
+            f"NEES mean {figure(honesty.nees_mean, 2)} (2 when honest), truth inside the 95 % ellipse "
+            f"{figure(honesty.inside_95, 3)} (0.95),"
+        )
+    parts.append(
+        f"NIS mean {figure(honesty.nis_mean, 2)}, within 95 % {figure(honesty.nis_within_95, 3)} "
+        f"({honesty.fixes_accepted} accepted fixes)"
+    )
+    return " ".join(parts)
 
 
 __all__ = [

@@ -21,6 +21,7 @@ from robotd.config.model import RobotdConfig
 from robotd.daemon.control import MotionController
 from robotd.kinematics import Twist
 from robotd.logs.sensorlog import Command, Event, IpsFix, IpsLost, LogWriter, Meta, Truth, Wheels
+from robotd.sim import variants
 from robotd.sim.scenarios import Scenario
 from robotd.sim.scenarios import build as build_scenario
 from robotd.sim.world import build_world, geometry_of, scenario_params
@@ -160,12 +161,18 @@ class RunSummary:
 
 def simulate(config: RobotdConfig, scenario_name: str, seed: int, loops: int, out: TextIO) -> RunSummary:
     """Write the sensor log of one scenario run to `out`; the same arguments give the same bytes."""
-    scenario = build_scenario(scenario_name, scenario_params(config.sim), loops, seed)
     source = f"robotd simulate {scenario_name} --seed {seed} --loops {loops}"
-    writer = LogWriter(out, meta_for(config, source))
+    if scenario_name in variants.VARIANTS:
+        variant = variants.build(scenario_name, config, scenario_params(config.sim), loops, seed)
+        writer = LogWriter(out, meta_for(variant.described, source))
+        events = variants.logged(variant, run(variant.world, variant.scenario, seed))
+    else:
+        scenario = build_scenario(scenario_name, scenario_params(config.sim), loops, seed)
+        writer = LogWriter(out, meta_for(config, source))
+        events = run(config, scenario, seed)
     counts: dict[str, int] = {}
     last_t = 0.0
-    for event in run(config, scenario, seed):
+    for event in events:
         writer.write(event)
         kind = type(event).__name__
         counts[kind] = counts.get(kind, 0) + 1

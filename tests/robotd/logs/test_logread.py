@@ -14,7 +14,7 @@ from sim_logs import sim_config, simulated_text
 
 from robotd.logs import sensorlog
 from robotd.logs.events import rounded
-from robotd.logs.sensorlog import IpsFix, LogWriter, Meta, Truth, TwistSample, Wheels, parse_lines, read_log
+from robotd.logs.sensorlog import IpsFix, LogWriter, Meta, Truth, TwistSample, Wheels, encode, parse_lines, read_log
 
 GOOD = '{"t": 0.5, "type": "wheels", "ticks": [1, 2, 3, 4]}'
 
@@ -106,7 +106,12 @@ def test_unknown_types_are_counted_not_reported_and_optional_fields_take_their_d
     assert not log.problems
     assert log.unknown_types == {"lidar": 2, "imu": 1}
     fix, truth = log.events
-    assert fix == IpsFix(1.3, 1.0, 2.0, 0.0, 1.3)  # measured when it arrived, at z = 0
+    assert isinstance(fix, IpsFix)
+    assert fix.t == 1.3
+    assert (fix.x, fix.y, fix.z) == (1.0, 2.0, 0.0)
+    assert not fix.timed
+    assert fix.stated_t == 1.3
+    assert encode(fix) == '{"type":"ips","t":1.3,"x":1.0,"y":2.0,"z":0.0}'  # written back without one
     assert isinstance(truth, Truth)
     assert math.isnan(truth.theta)
     assert log.meta == Meta({"lx": 0.2}, "s", version=2)

@@ -1,0 +1,68 @@
+"""`robotd tune LOG...`: fit the filter's noise parameters and odometry calibration to recorded logs."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from robotd.config.model import RobotdConfig, load, parse
+from robotd.logs import logcheck
+from robotd.logs.sensorlog import SensorLog, read_log
+
+EX_DATAERR = 65
+EX_NOINPUT = 66
+EX_IOERR = 74
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add `robotd tune`."""
+    tune = subparsers.add_parser(
+        "tune",
+        help="fit the filter's noise and odometry calibration to sensor logs (no truth needed); write a YAML snippet",
+    )
+    tune.add_argument("logs", nargs="+", metavar="LOG", help="sensor logs (JSON Lines)")
+    tune.add_argument("--config", help="YAML configuration to start from (default: built-in defaults)")
+    tune.add_argument("--out", metavar="FILE.yaml", help="write the YAML snippet here (default: print it)")
+    tune.set_defaults(handler=run_tune)
+
+
+def run_tune(args: argparse.Namespace) -> int:
+    """Tune, print what changed and why, write the snippet; a log that cannot be read or used: one line, sysexits."""
+    from robotd.offline.replay import robot_from_log  # noqa: PLC0415 - heavy imports only for this command
+    from robotd.offline.tune import tune, yaml_snippet  # noqa: PLC0415
+
+    config: RobotdConfig = load(args.config) if args.config else parse("")
+    logs: list[SensorLog] = []
+    for path in args.logs:
+        try:
+            log = read_log(path)
+        except OSError as error:
+            print(f"robotd tune: {path}: {error.strerror or error}", file=sys.stderr)
+            return EX_NOINPUT
+        try:
+            log, _ = logcheck.check(log, robot_from_log(log, config)[2])
+        except logcheck.LogRefusedError as refusal:
+            print(f"robotd tune: {path}: {refusal}", file=sys.stderr)
+            return EX_DATAERR
+        logs.append(log)
+    result = tune(logs, config)
+    for path, before, after in zip(args.logs, result.before, result.after, strict=True):
+        print(
+            f"{path}: {after.fixes} fixes; innovations' negative log likelihood per fix {before.nll:.3f} -> "
+            f"{after.nll:.3f}, NIS mean {before.nis_mean:.2f} -> {after.nis_mean:.2f} (2 when the noise is right)"
+        )
+    print("changed (each kept because it made the fixes more likely):" if result.changes else "nothing to change")
+    for change in result.changes:
+        print(f"  {change}")
+    snippet = yaml_snippet(result)
+    if args.out:
+        try:
+            Path(args.out).write_text(snippet, encoding="utf-8")
+        except OSError as error:
+            print(f"robotd tune: --out {args.out}: {error.strerror or error}", file=sys.stderr)
+            return EX_IOERR
+        print(f"wrote {args.out}")
+    else:
+        print(snippet, end="")
+    return 0

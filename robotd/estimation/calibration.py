@@ -1,0 +1,326 @@
+"""Online calibration: the odometry's scales and the fixes' delay, learnt from the fixes. Pure (numpy, no I/O).
+
+Theory of operation. Real robots are never configured exactly: the effective wheel radius differs from the datasheet,
+mecanum rollers and floors change sideways and rotational motion, and a fix without a measurement time arrives an
+unknown delay after it was measured. The parameters c = (kx, ky, kw, tau_u, tau_k) say how the odometry's body
+twist (vx, vy, wz) is really (kx vx, ky vy, kw wz), and how late a fix is beyond its stated time: tau_u for fixes
+without a measurement time (stated: their arrival; tau_u is the latency), tau_k for fixes with one (ideally 0: a
+check of the stated time). They change slowly (a random walk) and stay within bounds.
+
+They are estimated window by window of travel (`window_m`), as a sequential Bayesian estimate: each window's data
+are the odometry steps (raw twists) and the fixes accepted by the gate; the model of fix i, stated at s_i, is
+
+    z_i = T + R(phi) b(s_i - tau),   b(t) = the beacon's position on the odometry path integrated from the window's
+                                            start with twists (kx vx, ky vy, kw wz) and a heading drift psi per metre
+
+where T, phi (the window's placement in the world) and psi (unequal traction) are nuisance parameters of the window.
+The fit is Gauss-Newton on the fixes' residuals (noise: the fix noise, or the residuals' own spread when larger) plus
+the prior of c from the windows before; the posterior of c is the next prior. Why windows and not the filter's
+innovations: the filter absorbs a wrong latency into a position offset at constant velocity, and a wrong scale into
+an innovation bias along the velocity, so innovations confound the two; a window's whole path separates them (scale
+stretches the path, delay shifts it along time, visible wherever the speed changes). Windows are disjoint, so no
+fix is counted twice.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from robotd.estimation.heading import fit_rotation
+
+FloatArray = npt.NDArray[np.float64]
+
+N_CAL = 5  # kx, ky, kw, tau_u, tau_k
+KX, KY, KW, TAU_U, TAU_K = range(N_CAL)
+N_NUISANCE = 4  # phi, tx, ty, psi
+MIN_FIXES = 12
+PSI_SIGMA = 0.05  # rad per metre: heading drift from unequal traction, the prior of the window's psi
+SCALE_WALK = 0.01**2 / 60.0  # variance per second: a scale drifts about 1 % a minute at most
+LATENCY_WALK = 0.005**2 / 60.0  # s^2 per second: a delay drifts about 5 ms a minute at most
+MAX_WINDOW_S = 60.0  # a window that has not travelled its length by then starts again (bounded memory)
+TRIM_SIGMAS = 4.0
+
+
+@dataclass(frozen=True, slots=True)
+class Calibration:
+    """The odometry scales (vx, vy, wz multipliers), the fixes' delays and their standard deviations."""
+
+    kx: float = 1.0
+    ky: float = 1.0
+    kw: float = 1.0
+    latency_s: float = 0.05  # of fixes without a measurement time
+    time_error_s: float = 0.0  # of fixes with one: the check of their stated time
+    sigmas: tuple[float, float, float, float, float] = (0.1, 0.1, 0.1, 0.1, 0.05)
+    windows: int = 0  # windows fitted so far
+    fix_correlated_var: float = 0.0  # m^2 per axis: the part of the fixes' error that persists from fix to fix
+
+    @property
+    def wheel_radius_scale(self) -> float:
+        """The effective wheel radius over the configured one (the forward scale)."""
+        return self.kx
+
+    @property
+    def lateral_scale(self) -> float:
+        """Sideways motion over what the wheels' kinematics give, beyond the radius scale (mecanum rollers)."""
+        return self.ky / self.kx
+
+    @property
+    def rotation_scale(self) -> float:
+        """Rotation over what the kinematics give, beyond the radius scale (track, wheel scrub)."""
+        return self.kw / self.kx
+
+    def as_dict(self) -> dict[str, float | int]:
+        """The status's and replay's report."""
+        s = self.sigmas
+        return {
+            "wheel_radius_scale": round(self.kx, 5),
+            "wheel_radius_scale_sigma": round(s[KX], 5),
+            "lateral_scale": round(self.lateral_scale, 5),
+            "lateral_scale_sigma": round(math.hypot(s[KY], s[KX]), 5),
+            "rotation_scale": round(self.rotation_scale, 5),
+            "rotation_scale_sigma": round(math.hypot(s[KW], s[KX]), 5),
+            "latency_s": round(self.latency_s, 5),
+            "latency_sigma_s": round(s[TAU_U], 5),
+            "time_error_s": round(self.time_error_s, 5),
+            "time_error_sigma_s": round(s[TAU_K], 5),
+            "fix_correlated_sigma_m": round(math.sqrt(self.fix_correlated_var), 5),
+            "windows": self.windows,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class CalibrationLimits:
+    """Bounds and priors: scales within 1 +- scale_limit, delays within [0, latency_max_s] (the check within +-)."""
+
+    scale_limit: float = 0.25
+    latency_max_s: float = 0.5
+    window_m: float = 1.5
+
+
+class Calibrator:
+    """The sequential window estimate of Calibration (see the module docstring)."""
+
+    def __init__(self, start: Calibration, limits: CalibrationLimits, offset: tuple[float, float]) -> None:
+        self.limits = limits
+        self.offset = offset
+        self.mean = np.array([start.kx, start.ky, start.kw, start.latency_s, start.time_error_s])
+        self.cov = np.diag(np.square(np.asarray(start.sigmas, dtype=np.float64)))
+        self.windows = start.windows
+        self.fix_correlated_var = start.fix_correlated_var
+        self._fitted_at = math.nan
+        self._clamp()
+        self.current = self._snapshot()
+        self._start_window(math.nan)
+
+    # --- data -------------------------------------------------------------------------------------------
+
+    def _start_window(self, t: float, fixes: list[tuple[float, float, float, bool]] | None = None) -> None:
+        self._t0 = t
+        self._steps_t: list[float] = []
+        self._steps_dt: list[float] = []
+        self._steps_u: list[tuple[float, float, float]] = []
+        self._fixes: list[tuple[float, float, float, bool]] = fixes or []
+        self.travel = 0.0
+
+    def _delay(self, timed: bool) -> float:
+        return float(self.mean[TAU_K] if timed else self.mean[TAU_U])
+
+    def on_step(self, t_start: float, t_end: float, u: tuple[float, float, float]) -> None:
+        """A prediction step over (t_start, t_end] with the raw odometry twist u."""
+        last = self._steps_t[-1] if self._steps_t else self._t0
+        if t_start != last or t_end - self._t0 > MAX_WINDOW_S:
+            self._start_window(t_start)  # the first step, a gap in the steps, or a window that never ends
+        self._steps_t.append(t_end)
+        self._steps_dt.append(t_end - t_start)
+        self._steps_u.append(u)
+        self.travel += math.hypot(u[0], u[1]) * (t_end - t_start)
+
+    def on_fix(self, stated_t: float, zx: float, zy: float, *, timed: bool) -> bool:
+        """An accepted fix stated at stated_t (its measurement time when `timed`, else its arrival); returns True when
+        it closed a window whose fit changed the calibration."""
+        if math.isnan(self._t0) or stated_t - self._delay(timed) < self._t0:
+            return False
+        self._fixes.append((stated_t, zx, zy, timed))
+        if self.travel < self.limits.window_m or len(self._fixes) < MIN_FIXES or not self._steps_t:
+            return False
+        end = self._steps_t[-1]
+        # the fixes measured on this window's path; those measured after its end start the next window
+        inside = [f for f in self._fixes if f[0] - self._delay(f[3]) <= end]
+        later = [f for f in self._fixes if f[0] - self._delay(f[3]) > end]
+        t0, ends = self._t0, np.array(self._steps_t)
+        dts, us = np.array(self._steps_dt), np.array(self._steps_u)
+        self._start_window(end, later)
+        if len(inside) < MIN_FIXES:
+            return False
+        changed = self._fit(t0, ends, dts, us, inside)
+        self.current = self._snapshot()
+        return changed
+
+    # --- estimate ---------------------------------------------------------------------------------------
+
+    def _walk(self, t: float) -> None:
+        """Let the parameters drift by their random walk since the last fit."""
+        if not math.isnan(self._fitted_at) and t > self._fitted_at:
+            dt = t - self._fitted_at
+            walk = np.array([SCALE_WALK, SCALE_WALK, SCALE_WALK, LATENCY_WALK, LATENCY_WALK]) * dt
+            self.cov = self.cov + np.diag(walk)
+        self._fitted_at = t
+
+    def _fit(
+        self,
+        t0: float,
+        ends: FloatArray,
+        dts: FloatArray,
+        us: FloatArray,
+        fixes: list[tuple[float, float, float, bool]],
+    ) -> bool:
+        """One window's Gauss-Newton fit with the prior; updates mean and cov; False when it decided nothing."""
+        self._walk(float(ends[-1]))
+        stated = np.array([f[0] for f in fixes])
+        zs = np.array([[f[1], f[2]] for f in fixes])
+        timed = np.array([f[3] for f in fixes])
+        path = _Path(t0, ends, dts, us, self.offset)
+        prior_mean, prior_info = self.mean.copy(), np.linalg.inv(self.cov)
+        cal = self.mean.copy()
+        bx, by = path.beacon(cal, 0.0, _measured(stated, timed, cal))
+        phi, tx, ty = fit_rotation(bx.tolist(), by.tolist(), zs[:, 0].tolist(), zs[:, 1].tolist())
+        nuisance = np.array([phi, tx, ty, 0.0])
+        keep = np.ones(len(fixes), dtype=bool)
+        info = prior_info
+        sigma2 = rho = 0.0
+        for _ in range(4):
+            params = np.concatenate([nuisance, cal])
+            residual, jac = _residuals_and_jacobian(path, params, stated, timed, zs)
+            sq = residual[:, 0] ** 2 + residual[:, 1] ** 2
+            # the fix noise per axis: the residuals' robust spread (a median of chi-square 2 dof is 2 ln 2 sigma^2)
+            sigma2 = max(float(np.median(sq[keep])) / (2.0 * math.log(2.0)), 1e-6)
+            keep = sq <= (TRIM_SIGMAS**2) * 2.0 * sigma2
+            if keep.sum() < MIN_FIXES:
+                return False
+            rho = _lag_one_correlation(residual[keep], sigma2)
+            # correlated fix errors (multipath, a wall's echo) carry less information than as many independent ones:
+            # an AR(1) sequence of n values is worth n (1 - rho) / (1 + rho) independent ones
+            weight = max((1.0 - rho) / (1.0 + rho), 0.02) / sigma2
+            r = residual[keep].reshape(-1)
+            j = jac[keep].reshape(-1, N_NUISANCE + N_CAL)
+            a = j.T @ j * weight
+            g = j.T @ r * weight
+            a[N_NUISANCE:, N_NUISANCE:] += prior_info
+            g[N_NUISANCE:] -= prior_info @ (cal - prior_mean)
+            a[3, 3] += 1.0 / PSI_SIGMA**2
+            g[3] -= nuisance[3] / PSI_SIGMA**2
+            a[0, 0] += 1e-9  # the placement is free; this only keeps the matrix invertible
+            a[1, 1] += 1e-9
+            a[2, 2] += 1e-9
+            try:
+                step = np.linalg.solve(a, g)
+            except np.linalg.LinAlgError:
+                return False
+            nuisance = nuisance + step[:N_NUISANCE]
+            cal = cal + step[N_NUISANCE:]
+            info = a
+            if float(np.max(np.abs(step[N_NUISANCE:]))) < 1e-5:
+                break
+        if not np.all(np.isfinite(cal)):
+            return False
+        covariance = np.linalg.inv(info)[N_NUISANCE:, N_NUISANCE:]
+        self.mean = cal
+        self.cov = 0.5 * (covariance + covariance.T)
+        self.windows += 1
+        # what fusing many fixes cannot average away: their error shared from one fix to the next (smoothed)
+        # (only a correlation beyond chance, 2 / sqrt(n): the path's own small deformations by slip are not the fixes')
+        correlated = sigma2 * rho if rho > 2.0 / math.sqrt(int(keep.sum())) else 0.0
+        self.fix_correlated_var += (correlated - self.fix_correlated_var) * (1.0 if self.windows == 1 else 0.3)
+        self._clamp()
+        return True
+
+    def _clamp(self) -> None:
+        """Keep the parameters within their bounds (a fit that runs away stays bounded)."""
+        limits = self.limits
+        low = np.array([1.0 - limits.scale_limit] * 3 + [0.0, -limits.latency_max_s])
+        high = np.array([1.0 + limits.scale_limit] * 3 + [limits.latency_max_s, limits.latency_max_s])
+        self.mean = np.clip(self.mean, low, high)
+
+    def _snapshot(self) -> Calibration:
+        m = self.mean.tolist()
+        s = np.sqrt(np.clip(np.diag(self.cov), 0.0, None)).tolist()
+        sigmas = (s[0], s[1], s[2], s[3], s[4])
+        return Calibration(m[0], m[1], m[2], m[3], m[4], sigmas, self.windows, self.fix_correlated_var)
+
+
+def _lag_one_correlation(residual: FloatArray, sigma2: float) -> float:
+    """The correlation of consecutive fixes' residuals (both axes), within [0, 0.98]."""
+    if len(residual) < 3:
+        return 0.0
+    products = residual[1:, 0] * residual[:-1, 0] + residual[1:, 1] * residual[:-1, 1]
+    rho = float(np.mean(products)) / (2.0 * sigma2)
+    return min(max(rho, 0.0), 0.98)
+
+
+def _measured(stated: FloatArray, timed: npt.NDArray[np.bool_], cal: FloatArray) -> FloatArray:
+    """The fixes' measurement times under the calibration's delays."""
+    result: FloatArray = stated - np.where(timed, cal[TAU_K], cal[TAU_U])
+    return result
+
+
+class _Path:
+    """A window's odometry path: steps (ends, dts, raw twists) from t0, integrated under a calibration."""
+
+    def __init__(self, t0: float, ends: FloatArray, dts: FloatArray, us: FloatArray, offset: tuple[float, float]):
+        self.times = np.concatenate([[t0], ends])
+        self.dts = dts
+        self.us = us
+        self.offset = offset
+        self.step_dist = np.hypot(us[:, 0], us[:, 1]) * dts
+
+    def beacon(self, cal: FloatArray, psi: float, when: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The beacon's position at times `when` on the path integrated with scales cal[:3] and drift psi."""
+        vx, vy, wz = self.us[:, 0] * cal[KX], self.us[:, 1] * cal[KY], self.us[:, 2] * cal[KW]
+        dth = wz * self.dts + psi * self.step_dist * cal[KX]
+        th_end = np.concatenate([[0.0], np.cumsum(dth)])
+        mid = th_end[:-1] + 0.5 * dth
+        c, s = np.cos(mid), np.sin(mid)
+        x = np.concatenate([[0.0], np.cumsum((vx * c - vy * s) * self.dts)])
+        y = np.concatenate([[0.0], np.cumsum((vx * s + vy * c) * self.dts)])
+        px = np.interp(when, self.times, x)
+        py = np.interp(when, self.times, y)
+        th = np.interp(when, self.times, th_end)
+        ox, oy = self.offset
+        ct, st = np.cos(th), np.sin(th)
+        return px + ox * ct - oy * st, py + ox * st + oy * ct
+
+
+def _model(path: _Path, params: FloatArray, stated: FloatArray, timed: npt.NDArray[np.bool_]) -> FloatArray:
+    """Predicted fixes (n x 2) for params = (phi, tx, ty, psi, kx, ky, kw, tau_u, tau_k)."""
+    phi, tx, ty, psi = params[:N_NUISANCE]
+    cal = params[N_NUISANCE:]
+    bx, by = path.beacon(cal, float(psi), _measured(stated, timed, cal))
+    c, s = math.cos(phi), math.sin(phi)
+    return np.stack([tx + c * bx - s * by, ty + s * bx + c * by], axis=1)
+
+
+def _residuals_and_jacobian(
+    path: _Path, params: FloatArray, stated: FloatArray, timed: npt.NDArray[np.bool_], zs: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Residuals z - f (n x 2) and the Jacobian of f (n x 2 x parameters), by central differences but for T."""
+    f0 = _model(path, params, stated, timed)
+    n = len(stated)
+    jac = np.zeros((n, 2, N_NUISANCE + N_CAL))
+    jac[:, 0, 1] = 1.0
+    jac[:, 1, 2] = 1.0
+    for k in (0, 3, *range(N_NUISANCE, N_NUISANCE + N_CAL)):
+        h = 1e-4 if k < N_NUISANCE + TAU_U else 1e-3
+        if k >= N_NUISANCE + TAU_U and not np.any(timed == (k == N_NUISANCE + TAU_K)):
+            continue  # no fix of that kind in the window: its delay is not in the data
+        up, down = params.copy(), params.copy()
+        up[k] += h
+        down[k] -= h
+        jac[:, :, k] = (_model(path, up, stated, timed) - _model(path, down, stated, timed)) / (2.0 * h)
+    return zs - f0, jac
+
+
+__all__ = ["Calibration", "CalibrationLimits", "Calibrator"]

@@ -1,0 +1,93 @@
+"""Online calibration end to end: the virtual robot configured wrong, fixes without a measurement time, the bounds."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import msgspec
+import numpy as np
+import pytest
+from sim_logs import sim_config, simulated
+
+from robotd.config.model import RobotdConfig
+from robotd.estimation.calibration import Calibration, CalibrationLimits, Calibrator
+from robotd.logs.sensorlog import IpsFix, SensorLog, Truth
+from robotd.offline.metrics import Trajectory, score
+from robotd.offline.replay import ReplayResult, replay
+
+
+def _with_meta_robot(log: SensorLog, **robot: float) -> SensorLog:
+    """The same log describing another robot (what the configuration says, not what drove)."""
+    meta = msgspec.structs.replace(log.meta, robot={**log.meta.robot, **robot})
+    return SensorLog(meta, log.events, log.problems, log.unknown_types, log.lines)
+
+
+def _untimed(log: SensorLog) -> SensorLog:
+    """The same log with every fix's measurement time left out."""
+    events = [IpsFix(e.t, e.x, e.y, e.z) if type(e) is IpsFix else e for e in log.events]
+    return SensorLog(log.meta, events, log.problems, log.unknown_types, log.lines)
+
+
+def _rmse_after(result: ReplayResult, log: SensorLog, after_s: float) -> float:
+    truth = Trajectory.from_samples([(e.t, e.x, e.y, e.theta) for e in log.events if type(e) is Truth])
+    e = result.ekf
+    keep = e.t >= after_s
+    stats = score(truth, Trajectory(e.t[keep], e.x[keep], e.y[keep], e.theta[keep]))
+    assert stats is not None
+    return stats.rmse_m
+
+
+def _random_drive(seed: int, config: RobotdConfig) -> SensorLog:
+    return simulated(config, seed, loops=2, scenario="random")
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_robot_configured_ten_percent_off_tracks_as_well_as_one_configured_right_after_30_s(seed: int) -> None:
+    config = sim_config()
+    radius = config.robot.wheel_radius_m
+    world = dataclasses.replace(config, robot=dataclasses.replace(config.robot, wheel_radius_m=1.1 * radius))
+    log = _random_drive(seed, world)  # meta.robot: the true radius
+    right = replay(log, config)
+    wrong = replay(_with_meta_robot(log, wheel_radius=radius), config)
+    assert wrong.calibration.wheel_radius_scale == pytest.approx(1.1 * right.calibration.wheel_radius_scale, rel=0.03)
+    assert _rmse_after(wrong, log, 30.0) <= 1.2 * _rmse_after(right, log, 30.0)
+    off = dataclasses.replace(config.ekf, calibrate=False)  # without calibration the same log is worse
+    uncalibrated = replay(_with_meta_robot(log, wheel_radius=radius), dataclasses.replace(config, ekf=off))
+    assert _rmse_after(uncalibrated, log, 30.0) > _rmse_after(wrong, log, 30.0)
+
+
+@pytest.mark.parametrize(("seed", "delay"), [(1, 0.1), (2, 0.1), (3, 0.03), (4, 0.2)])
+def test_the_delay_of_fixes_without_a_measurement_time_is_learnt_within_15_ms_after_30_s(
+    seed: int, delay: float
+) -> None:
+    config = sim_config(ips_latency_s=(delay, delay))
+    log = _untimed(_random_drive(seed, config))
+    head = SensorLog(log.meta, [e for e in log.events if e.t <= 32.0])  # 30 s of driving after the first 2 s at rest
+    result = replay(head, config)  # starts from marvelmind.default_latency_s, 0.05 s
+    assert result.counters["untimed_fixes"] > 200
+    assert result.calibration.latency_s == pytest.approx(delay, abs=0.015)
+    assert result.calibration.sigmas[3] < 0.015  # and says how sure it is
+
+
+def test_the_stated_measurement_times_are_checked() -> None:
+    config = sim_config()
+    result = replay(_random_drive(5, config), config)
+    c = result.calibration
+    assert c.windows >= 5
+    assert abs(c.time_error_s) < 3.0 * c.sigmas[4] + 0.01  # the simulator's time-shift field is right
+
+
+def test_scales_stay_within_their_bounds_whatever_the_fixes_say() -> None:
+    limits = CalibrationLimits(scale_limit=0.1, latency_max_s=0.3, window_m=1.0)
+    calibrator = Calibrator(Calibration(), limits, (0.0, 0.0))
+    t = 0.0
+    for k in range(400):  # odometry says 0.2 m/s forward; the fixes move at 0.4 m/s: twice the scale allowed
+        calibrator.on_step(t, t + 0.05, (0.2, 0.0, 0.0))
+        t += 0.05
+        if k % 2:
+            calibrator.on_fix(t, 0.4 * t, 0.0, timed=True)
+    c = calibrator.current
+    assert c.windows > 3
+    assert c.kx == pytest.approx(1.1)
+    assert 0.0 <= c.latency_s <= 0.3
+    assert np.isfinite(c.sigmas).all()

@@ -1,0 +1,65 @@
+"""`robotd tune`: noise fitted on one log improves the replay of another it never saw."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import yaml
+from sim_logs import sim_config, simulated, simulated_text
+
+from robotd import cli
+from robotd.config.model import RobotdConfig, parse
+from robotd.offline.replay import replay
+from robotd.offline.tune import score, tune
+
+
+def _overconfident(config: RobotdConfig) -> RobotdConfig:
+    """The configuration with odometry noise ten times too small: a filter that believes its wheels too much."""
+    ekf = dataclasses.replace(
+        config.ekf, odom_along_sigma_m=0.002, odom_across_sigma_m=0.003, slip_heading_sigma_rad=0.005
+    )
+    return dataclasses.replace(config, ekf=ekf)
+
+
+def test_tuning_on_one_log_improves_the_replay_of_a_held_out_log() -> None:
+    robot = sim_config(lateral_efficiency=0.85)  # the same robot drives both runs
+    fitted_on, held_out = (simulated(robot, seed, loops=1, scenario="random") for seed in (1, 2))
+    start = _overconfident(robot)
+    result = tune([fitted_on], start)
+    assert result.changes
+    assert result.after[0].nll < result.before[0].nll
+    tuned = dataclasses.replace(start, ekf=result.ekf)
+    before_fit, _ = score(held_out, start, start.ekf)
+    after_fit, _ = score(held_out, tuned, tuned.ekf)
+    assert after_fit.nll < before_fit.nll  # the held-out fixes are more likely
+    before, after = replay(held_out, start), replay(held_out, tuned)
+    honest_before, honest_after = before.consistency["ekf"].inside_95, after.consistency["ekf"].inside_95
+    assert honest_before is not None
+    assert honest_after is not None
+    assert honest_after > honest_before  # and its covariance more honest against truth it never saw
+    assert after.metrics is not None
+    assert before.metrics is not None
+    ours, theirs = after.metrics["ekf"], before.metrics["ekf"]
+    assert ours is not None
+    assert theirs is not None
+    assert ours.rmse_m <= 1.05 * theirs.rmse_m
+
+
+def test_the_command_prints_what_it_changed_and_writes_a_snippet_the_config_accepts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = tmp_path / "drive.jsonl"
+    log.write_text(simulated_text(sim_config(), 3, scenario="random"), encoding="utf-8")
+    start = tmp_path / "start.yaml"
+    start.write_text("ekf: {odom_along_sigma_m: 0.002, slip_heading_sigma_rad: 0.005}\n", encoding="utf-8")
+    snippet = tmp_path / "tuned.yaml"
+    assert cli.main(["tune", str(log), "--config", str(start), "--out", str(snippet)]) == 0
+    out = capsys.readouterr().out
+    assert "ekf.odom_along_sigma_m: 0.002 ->" in out
+    parsed = parse(snippet.read_text())  # the configuration's own validation takes it
+    fitted = yaml.safe_load(snippet.read_text())["ekf"]
+    assert parsed.ekf.odom_along_sigma_m == fitted["odom_along_sigma_m"] > 0.002
+    assert parsed.ekf.odometry_scale == tuple(fitted["odometry_scale"])
+    assert cli.main(["tune", str(tmp_path / "missing.jsonl")]) == 66
