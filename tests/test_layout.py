@@ -14,7 +14,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("robotd.config",),
     ("robotd.logs",),
     ("robotd.estimation",),
-    ("robotd.daemon",),
+    ("robotd.daemon", "robotd.fleet"),  # the fleet link is one of the daemon's tasks
     ("robotd.sim",),
     ("robotd.offline",),
     ("robotd.tools",),

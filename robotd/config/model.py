@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from robotd.config.fleet import FleetConfig
 from robotd.config.schema import (
     ConfigError,
     build,
@@ -528,6 +529,7 @@ class RobotdConfig:
     pose_socket: PoseSocketConfig = section(PoseSocketConfig, "Pose output.")
     control: ControlConfig = section(ControlConfig, "Motor control loop.")
     sim: SimConfig = section(SimConfig, "Virtual robot.")
+    fleet: FleetConfig = section(FleetConfig, "Fleet link to an MQTT broker (off by default).")
 
 
 def _cross_checks(config: RobotdConfig) -> list[str]:
