@@ -31,6 +31,7 @@ COMMAND_MODULES = (
     "robotd.commands.demo",
     "robotd.commands.install",
     "robotd.commands.doctor",
+    "robotd.commands.fleet",
 )
 
 
