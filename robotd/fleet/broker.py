@@ -158,6 +158,7 @@ class Broker:
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
+            process_group=0,  # a terminal's Ctrl-C reaches the parent, which stops the broker last
         )
         deadline = time.monotonic() + START_TIMEOUT_S
         while not self._accepting():
