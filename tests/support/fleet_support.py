@@ -97,12 +97,16 @@ class Watcher:
         return payload
 
 
-@contextlib.asynccontextmanager
-async def watcher(broker: Broker) -> AsyncIterator[Watcher]:
+def watcher(broker: Broker) -> contextlib.AbstractAsyncContextManager[Watcher]:
     """A Watcher subscribed to the whole tree as the operator."""
-    setup = broker.setup
+    return watcher_at(broker.setup.port, broker.setup.passwords[OPERATOR])
+
+
+@contextlib.asynccontextmanager
+async def watcher_at(port: int, password: str) -> AsyncIterator[Watcher]:
+    """A Watcher subscribed to the whole tree as the operator of the broker on `port`."""
     async with aiomqtt.Client(
-        "127.0.0.1", setup.port, username=OPERATOR, password=setup.passwords[OPERATOR], identifier="test-watcher"
+        "127.0.0.1", port, username=OPERATOR, password=password, identifier="test-watcher"
     ) as client:
         await client.subscribe(f"{topics.ROOT}/#", qos=1)
         watching = Watcher(client)
