@@ -10,4 +10,5 @@ BENCHMARK_MODULES: tuple[str, ...] = (
     "robotd.bench.marvelmind",
     "robotd.bench.sim",
     "robotd.bench.daemon",
+    "robotd.bench.fleet",
 )

@@ -49,6 +49,7 @@ class VirtualFleet:
     key_file: Path
     robot_ids: tuple[str, ...]
     configs: tuple[Path, ...]
+    broker: Broker
 
 
 def robot_ids(count: int) -> tuple[str, ...]:
@@ -68,7 +69,9 @@ def write_fleet_key(path: Path) -> Path:
     return path
 
 
-def robot_config(base: Path, out: Path, setup: BrokerSetup, key_file: Path, *, index: int, seed: int) -> Path:
+def robot_config(
+    base: Path, out: Path, setup: BrokerSetup, key_file: Path, *, index: int, seed: int, link: bool = True
+) -> Path:
     """The private configuration of robot `index` (from 0) of the fleet."""
     robot_id = setup.robot_ids[index]
     folder = out / robot_id
@@ -79,7 +82,7 @@ def robot_config(base: Path, out: Path, setup: BrokerSetup, key_file: Path, *, i
         "marvelmind": {"hedgehog_address": FIRST_ADDRESS + index},
         "ekf": {"initial_pose": list(pose)},  # a list of its own: one shared would be dumped as a YAML alias
         "fleet": {
-            "enabled": True,
+            "enabled": link,
             "robot_id": robot_id,
             "host": "127.0.0.1",
             "port": setup.port,
@@ -111,19 +114,21 @@ def _driver(config_path: Path, stop: threading.Event) -> None:
 
 @contextlib.contextmanager
 def virtual_fleet(
-    base: Path, out: Path, count: int, seed: int = 1, *, drive: bool = True
+    base: Path, out: Path, count: int, seed: int = 1, *, drive: bool = True, link: bool = True
 ) -> Iterator[tuple[VirtualFleet, Children]]:
-    """The broker, N virtual robots and their daemons running (and driving); all stopped on the way out."""
+    """The broker, N virtual robots and their daemons running (and driving); all stopped on the way out.
+
+    `link=False` turns the daemons' fleet link off (the benchmark's baseline): the broker then runs idle."""
     out.mkdir(parents=True, exist_ok=True)
     ids = robot_ids(count)
     setup = BrokerSetup(out / "broker", ids)
     setup.write()
     key_file = write_fleet_key(out / "fleet.key")
-    configs = tuple(robot_config(base, out, setup, key_file, index=k, seed=seed) for k in range(count))
+    configs = tuple(robot_config(base, out, setup, key_file, index=k, seed=seed, link=link) for k in range(count))
     stop = threading.Event()
     drivers: list[threading.Thread] = []
     children = Children()
-    with Broker(setup):
+    with Broker(setup) as broker:
         try:
             for config_path in configs:
                 folder = config_path.parent
@@ -142,7 +147,7 @@ def virtual_fleet(
                     driver = threading.Thread(target=_driver, args=(config_path, stop), daemon=True)
                     driver.start()
                     drivers.append(driver)
-            yield VirtualFleet(setup.url, setup.credentials_file(OPERATOR), key_file, ids, configs), children
+            yield VirtualFleet(setup.url, setup.credentials_file(OPERATOR), key_file, ids, configs, broker), children
         finally:
             stop.set()
             for driver in drivers:
