@@ -43,7 +43,7 @@ log = logging.getLogger("robotd.fleet")
 
 FIRST_RETRY_S = 0.1
 BACKED_UP_POLL_S = 0.01  # while paho still has bytes to write, look again this often
-OFFLINE_PUBLISH_S = 1.0  # a clean exit waits this long at most to say `offline`
+EXIT_WAIT_S = 0.1  # on the daemon's way out, the longest wait for the broker: the motors are zeroed after the tasks end
 REFUSAL_LOG_PERIOD_S = 10.0
 
 StatusSource = Callable[[], dict[str, Any]]
@@ -102,6 +102,7 @@ class FleetLink:
         self._outbox_ready = asyncio.Event()
         self._status_due = asyncio.Event()
         self._last_refusal_log = -float("inf")
+        self._leaving = False  # cancelled: the daemon is stopping
         self.counts: dict[str, int] = dict.fromkeys(
             ("connects", "connection_losses", "published", "dropped", "poses", "statuses"), 0
         )
@@ -180,6 +181,8 @@ class FleetLink:
                     lost_logged = False
                     await self._session(client)
             except* (aiomqtt.MqttError, OSError) as group:
+                if self._leaving:  # the disconnection's error on the way out must not swallow the cancellation
+                    raise asyncio.CancelledError from None
                 error = group.exceptions[0]
                 if self.connected:
                     self.counts["connection_losses"] += 1
@@ -215,10 +218,12 @@ class FleetLink:
                 tasks.create_task(self._receive(client), name="fleet-receive")
                 tasks.create_task(self._send(client), name="fleet-send")
         except asyncio.CancelledError:
+            # The daemon is stopping and zeroes the motors only once every task has ended: say `offline` without
+            # waiting (paho writes it now if the socket takes it), and bound the disconnection's wait.
+            self._leaving = True
+            client.timeout = EXIT_WAIT_S
             with contextlib.suppress(Exception):
-                await client.publish(
-                    topics.status(self.robot_id), offline_payload(self.robot_id), 1, True, timeout=OFFLINE_PUBLISH_S
-                )
+                client._client.publish(topics.status(self.robot_id), offline_payload(self.robot_id), 1, True)
             raise
 
     async def _send(self, client: aiomqtt.Client) -> None:

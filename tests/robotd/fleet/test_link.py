@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import gc
 import itertools
 import json
+import signal
 import time
 from pathlib import Path
 
@@ -192,3 +195,29 @@ async def test_reconnection_backs_off_to_its_cap(tmp_path: Path, fleet_key: tupl
         await link._connection()
     assert delays == [min(0.1 * 2**n, cap_s) for n in range(6)]
     assert link.counts["connects"] == 0
+
+
+async def test_a_hung_broker_does_not_delay_the_daemons_exit(
+    tmp_path: Path, broker: Broker, fleet_key: tuple[Path, bytes]
+) -> None:
+    """The broker stopped (SIGSTOP) while connected: the daemon still ends at once, motors zeroed."""
+    robot = FleetDaemon(tmp_path / "r1", broker, "r1", fleet_key[0])
+    task = asyncio.create_task(robot.daemon.run())
+    try:
+        await until(lambda: robot.fleet.connected, "connected")
+        assert broker.proc is not None
+        broker.proc.send_signal(signal.SIGSTOP)
+        robot.command(0.3)
+        await until(lambda: any(robot.motors.duties), "driving")
+        started = time.monotonic()
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        ended = time.monotonic() - started
+    finally:
+        if broker.proc is not None:
+            broker.proc.send_signal(signal.SIGCONT)
+        gc.unfreeze()
+    print(f"daemon exit with a hung broker: {ended * 1e3:.0f} ms")
+    assert not any(robot.motors.duties)
+    assert ended < 2.0  # well below the client's 5 s timeout: the exit never waits for the broker
