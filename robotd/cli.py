@@ -33,6 +33,7 @@ COMMAND_MODULES = (
     "robotd.commands.install",
     "robotd.commands.doctor",
     "robotd.commands.viz",
+    "robotd.commands.fleet",
 )
 
 

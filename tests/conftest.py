@@ -10,12 +10,15 @@ import os
 import pty
 import tty
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pigpio
 import pytest
+from mosquitto import mosquitto, write_key
 
 from drivers.virtual.pigpiod import VirtualPigpiod
+from robotd.fleet.broker import Broker
 
 
 @pytest.fixture
@@ -44,3 +47,17 @@ def beacon_pty() -> Iterator[tuple[int, str]]:
     finally:
         os.close(master)
         os.close(slave)
+
+
+@pytest.fixture
+def broker(tmp_path: Path) -> Iterator[Broker]:
+    """A real mosquitto with users robot-r1, robot-r2 and operator, each with its ACL (skips without mosquitto)."""
+    with mosquitto(tmp_path / "broker", ("r1", "r2")) as running:
+        yield running
+
+
+@pytest.fixture
+def fleet_key(tmp_path: Path) -> tuple[Path, bytes]:
+    """A private fleet key file and its key."""
+    path = tmp_path / "fleet.key"
+    return path, write_key(path)

@@ -15,7 +15,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("robotd.logs",),
     ("robotd.estimation",),
     ("robotd.viz",),
-    ("robotd.daemon",),
+    ("robotd.daemon", "robotd.fleet"),  # the fleet link is one of the daemon's tasks
     ("robotd.sim",),
     ("robotd.offline",),
     ("robotd.tools",),

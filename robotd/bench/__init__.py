@@ -11,6 +11,7 @@ BENCHMARK_MODULES: tuple[str, ...] = (
     "robotd.bench.sim",
     "robotd.bench.daemon",
     "robotd.bench.viewer",
+    "robotd.bench.fleet",
 )
 
 BENCHMARK_ADDITIONS: dict[str, tuple[str, ...]] = {

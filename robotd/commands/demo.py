@@ -17,6 +17,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     sim.add_argument("--config", default=DEFAULT_SIM_CONFIG, help=f"configuration (default {DEFAULT_SIM_CONFIG})")
     sim.add_argument("--seed", type=int, default=None, help="the virtual robot's seed (default sim.seed)")
     sim.add_argument("--out", default="out/sim", help="folder for logs and the daemon's sensor log (default out/sim)")
+    sim.add_argument(
+        "--robots", type=int, default=1, metavar="N", help="a virtual fleet: N robots and an MQTT broker (default 1)"
+    )
     sim.set_defaults(handler=run_sim)
     demo = subparsers.add_parser(
         "demo", help="drive the paper's square on the virtual robot through the daemon; figures and results table"
@@ -38,6 +41,13 @@ def run_sim(args: argparse.Namespace) -> int:
     from robotd.config.model import load  # noqa: PLC0415
     from robotd.tools.demo import StopRequested, private_config, running_robot, stop_signals  # noqa: PLC0415
 
+    if args.robots != 1:
+        from robotd.tools.fleet_sim import run_fleet_sim  # noqa: PLC0415
+
+        if args.robots < 1:
+            print(f"robotd sim: --robots must be at least 1, got {args.robots}", file=sys.stderr)
+            return 2
+        return run_fleet_sim(Path(args.config), Path(args.out), args.robots, args.seed)
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     from robotd.tools.demo import free_tcp_port  # noqa: PLC0415

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from robotd.config.fleet import FleetConfig
 from robotd.config.gpio import GpioConfig, gpiod_problems
 from robotd.config.schema import (
     ConfigError,
@@ -562,6 +563,7 @@ class RobotdConfig:
     control: ControlConfig = section(ControlConfig, "Motor control loop.")
     sim: SimConfig = section(SimConfig, "Virtual robot.")
     viewer: ViewerConfig = section(ViewerConfig, "Live view in Foxglove (robotd.viz).")
+    fleet: FleetConfig = section(FleetConfig, "Fleet link to an MQTT broker (off by default).")
 
 
 def _cross_checks(config: RobotdConfig) -> list[str]:

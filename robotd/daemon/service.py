@@ -54,6 +54,7 @@ from robotd.daemon.sdnotify import Notifier
 from robotd.daemon.teleop import StopCommand, TeleopMessage, receiver_from_config
 from robotd.daemon.teleop_socket import TeleopSocket, open_teleop
 from robotd.estimation.estimator import Estimator
+from robotd.fleet.hook import fleet_link
 from robotd.kinematics import Geometry, Twist
 from robotd.logs import sensorlog
 from robotd.viz import live
@@ -173,6 +174,7 @@ class Daemon:
         self.viewer = live.viewer_for(config, self.geometry, record_mcap, clock)
         if self.viewer is not None:
             self._recorder = live.Tee(self._recorder, self.viewer, daemon_meta(config))
+        self.fleet = fleet_link(config.fleet, self._fleet_status, self._on_fleet_hold)  # None when off
 
     # --- producers' callbacks (on the loop) -----------------------------------------------------------------
 
@@ -252,6 +254,8 @@ class Daemon:
                 tasks.create_task(self._motor_supervisor(), name="motors")
                 tasks.create_task(self.deadman.follow(), name="deadman")
                 tasks.create_task(self._until(stop), name="signals")
+                if self.fleet is not None:
+                    tasks.create_task(self.fleet.run(), name="fleet")
                 self.notifier.ready(status="running")
                 log.info("robotd running: teleop udp %s:%d, pose socket %s", self.config.teleop.bind,
                          self.config.teleop.port, self.config.pose_socket.path)  # fmt: skip
@@ -316,6 +320,7 @@ class Daemon:
     def _control_step(self, now: float) -> None:
         teleop = self._teleop
         fresh = teleop.received_at is not None and teleop.received_at > self._motors_ready_after
+        fresh = fresh and (self.fleet is None or not self.fleet.held)  # a fleet stop holds the motors off
         command = teleop.twist if fresh else None
         duties = self.controller.step(now, command, teleop.received_at if fresh else None, self._wheel_speeds)
         self._counters["control_steps"] += 1
@@ -427,6 +432,8 @@ class Daemon:
         self.pose_server.publish(message)
         if self.viewer is not None:
             self.viewer.pose(message)
+        if self.fleet is not None:
+            self.fleet.latest_pose = message
 
     def _status_message(self, now: float) -> dict[str, Any]:
         encoders = self.encoders.counters
@@ -458,6 +465,8 @@ class Daemon:
             drivers["recorder"] = self._recorder.counters()
         if self.viewer is not None:
             drivers["viewer"] = self.viewer.counters()
+        if self.fleet is not None:
+            drivers["fleet"] = self.fleet.counters()
         calibration = self.estimator.calibration
         self._calibration_keeper.maybe_save(calibration, now)
         diagnostics = {**self.estimator.counters, "calibration": calibration.as_dict()}
@@ -501,6 +510,19 @@ class Daemon:
         if fault is None:
             return []
         return [{"kind": "stall", "wheels": list(fault.wheels), "since": fault.since}]
+
+    def _on_fleet_hold(self, held: bool) -> None:
+        """A fleet stop (held) cuts the motors in this call; after its release only a fresh command drives."""
+        now = self.clock()
+        self._motors_ready_after = now
+        log.warning("fleet stop %s", "in force: motors off until released" if held else "released: awaiting a command")
+        self._control_step(now)
+
+    def _fleet_status(self) -> dict[str, Any]:
+        """The status message, with the heading's calibration, for the fleet's retained status."""
+        now = self.clock()
+        calibration = {"heading": self.estimator.modes.heading.value, "position": self.estimator.modes.position.value}
+        return self._status_message(now) | {"calibration": calibration}
 
     def _open_recorder(self, stream: TextIO | None) -> Recorder | None:
         return None if stream is None else Recorder(stream, daemon_meta(self.config))
