@@ -154,6 +154,47 @@ async def open_notifications(
     return handle, reader, writer
 
 
+NOTIFY_RECEIVE_BUFFER = 1 << 20
+"""Receive buffer asked for a polled notification socket: reports wait in the kernel between two reads."""
+
+
+async def open_notification_socket(host: str, port: int, timeout_s: float) -> tuple[int, socket.socket]:
+    """A notification socket (NOIB) as a plain non-blocking socket that the event loop does not watch; (handle,
+    socket).
+
+    Its owner reads it when it wants the reports (`socket.recv_into` until it would block), so a stream of reports
+    wakes nobody: pigpiod flushes them every millisecond, and an asyncio stream would wake the loop for each flush.
+    """
+    loop = asyncio.get_running_loop()
+    try:
+        async with asyncio.timeout(timeout_s):
+            infos = await loop.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+            family, kind, proto, _, address = infos[0]
+            sock = socket.socket(family, kind, proto)
+            try:
+                sock.setblocking(False)
+                with contextlib.suppress(OSError):  # the kernel caps it (net.core.rmem_max): a wish, not a need
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, NOTIFY_RECEIVE_BUFFER)
+                await loop.sock_connect(sock, address)
+                await loop.sock_sendall(sock, encode_command(Cmd.NOIB))
+                answer = b""
+                while len(answer) < COMMAND.size:
+                    chunk = await loop.sock_recv(sock, COMMAND.size - len(answer))
+                    if not chunk:
+                        raise ConnectionResetError("pigpiod closed the socket before answering NOIB")
+                    answer += chunk
+            except BaseException:
+                sock.close()
+                raise
+    except (OSError, TimeoutError) as error:
+        raise PigpiodUnavailableError(host, port, error or "timed out") from error
+    handle = decode_result(answer)
+    if handle < 0:
+        sock.close()
+        raise PigpioCommandError(Cmd.NOIB, 0, 0, handle)
+    return handle, sock
+
+
 def probe(host: str, port: int, timeout_s: float) -> None:
     """Check that something accepts connections at host:port, or raise PigpiodUnavailableError (blocking)."""
     try:
