@@ -110,6 +110,20 @@ class PigpioLink:
         """Send a command without waiting for its answer (never blocks: the socket buffers it)."""
         self._writer.write(encode_command(cmd, p1, p2, extension))
 
+    def hold_answers(self) -> None:
+        """Leave pigpiod's answers in the kernel until `release_answers`: answers owed to commands sent without
+        waiting then wake nobody as they arrive (the event loop stops watching the socket meanwhile)."""
+        self._read_transport().pause_reading()
+
+    def release_answers(self) -> None:
+        """Read answers again as they arrive (those held come at once)."""
+        self._read_transport().resume_reading()
+
+    def _read_transport(self) -> asyncio.ReadTransport:
+        transport = self._writer.transport
+        assert isinstance(transport, asyncio.ReadTransport)
+        return transport
+
     async def read_answer(self) -> Answer:
         """The next answer on the socket, with its data; a closed socket raises ConnectionResetError."""
         try:

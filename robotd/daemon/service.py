@@ -39,6 +39,7 @@ from drivers.backoff import Backoff
 from drivers.marvelmind.events import Event as MarvelmindEvent
 from drivers.marvelmind.events import FixUnavailable, Position
 from drivers.marvelmind.reader import MarvelmindReader
+from drivers.pacing import next_tick, sleep_until
 from drivers.pigpiod.client import PigpioCommandError
 from drivers.pigpiod.deadman import Deadman, PigpioDeadman
 from drivers.pigpiod.protocol import ProtocolError
@@ -46,8 +47,9 @@ from drivers.wheels.encoders import EncoderSource, PigpioEncoders, WheelTicks
 from drivers.wheels.motors import GpiozeroMotors, MotorOutputs, enable_and_direction_pins
 from robotd.config.model import RobotdConfig
 from robotd.daemon import posesock
-from robotd.daemon.control import MotionController, StallFault
+from robotd.daemon.control import ControlState, MotionController, StallFault
 from robotd.daemon.deadman_keeper import DeadmanFactory, DeadmanKeeper
+from robotd.daemon.pacer import ControlPacer
 from robotd.daemon.periodstats import PeriodStats
 from robotd.daemon.recorder import Recorder, create_log, daemon_meta
 from robotd.daemon.sdnotify import Notifier
@@ -146,6 +148,7 @@ class Daemon:
             max_clients=pose_socket.max_clients,
         )
         self.control_periods = PeriodStats()
+        self.pacer = ControlPacer(self.controller.period_s, config.teleop.deadman_timeout_s)
         self._last_fix_arrival: float | None = None
         self._teleop = _Teleop()
         self._alive = _Liveness()
@@ -195,6 +198,7 @@ class Daemon:
         # The command reaches the motors now, not at the next period; but at most one command per half period
         # does, so a flood of valid commands cannot run the controller and the motor writes at its rate: the
         # control loop applies a command that arrives sooner at its next tick.
+        self.pacer.command_arrived()  # a loop at rest steps at once and resumes its period
         now = self.clock()
         if now - teleop.stepped_at >= 0.5 * self.controller.period_s:
             teleop.stepped_at = now
@@ -273,20 +277,25 @@ class Daemon:
         raise _Shutdown
 
     async def _control_loop(self) -> None:
-        """Step the controller at its rate (a command also steps it at once, from `_on_teleop`)."""
-        period = self.controller.period_s
-        next_tick = self.clock()
+        """Step the controller at its rate, or at rest only for the deadman's heartbeat (robotd.daemon.pacer); a
+        command also steps it at once, from `_on_teleop`."""
         while True:
             now = self.clock()
-            self.control_periods.tick(now)
             self._control_step(now)
             self.deadman.bump()  # from here, not from a task of its own: a loop that stops stepping stops bumping
-            next_tick += period
-            if next_tick < now:  # the loop stalled: restart the schedule rather than bursting
-                next_tick = now + period
-            # one sleep per period: asyncio may wake a timer up to its clock resolution early, and a loop that
-            # re-checked the time would then take a burst of tiny steps
-            await asyncio.sleep(next_tick - now)
+            at_rest = self._at_rest(now)
+            if at_rest:
+                self.control_periods.pause()  # a parked robot's heartbeat is not a control period
+            else:
+                self.control_periods.tick(now)
+            await self.pacer.next_step(at_rest=at_rest)
+
+    def _at_rest(self, now: float) -> bool:
+        """Motors off and no command for the deadman timeout: nothing changes until a command arrives."""
+        received = self._teleop.received_at
+        if received is not None and now - received <= self.config.teleop.deadman_timeout_s:
+            return False
+        return self.controller.last.state is not ControlState.DRIVING
 
     def _control_step(self, now: float) -> None:
         teleop = self._teleop
@@ -380,8 +389,11 @@ class Daemon:
     async def _pose_loop(self) -> None:
         period = 1.0 / self.config.pose_socket.rate_hz
         next_status = self.clock()
+        loop = asyncio.get_running_loop()
         while True:
-            await asyncio.sleep(period)
+            await self.pose_server.wait_for_clients()  # nobody listening: nothing to wake for
+            # on the shared grid: at 20 Hz every other wake-up is the control loop's at 50 Hz
+            await sleep_until(next_tick(loop.time(), period))
             self._publish_pose()
             now = self.clock()
             if now >= next_status:
@@ -389,6 +401,8 @@ class Daemon:
                 self.pose_server.publish(self._status_message(now))
 
     def _publish_pose(self) -> None:
+        if not self.pose_server.clients:
+            return  # the filter's estimate at a fix is for readers: without one, it is not worth building
         now = self.clock()
         estimate = self.estimator.pose(now)
         health = self.marvelmind.health(now)
