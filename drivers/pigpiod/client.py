@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import select
 import socket
+import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from drivers.pigpiod.protocol import COMMAND, EXTENDED_ANSWERS, Cmd, Err, decode_result, encode_command
@@ -110,6 +113,20 @@ class PigpioLink:
         """Send a command without waiting for its answer (never blocks: the socket buffers it)."""
         self._writer.write(encode_command(cmd, p1, p2, extension))
 
+    def hold_answers(self) -> None:
+        """Leave pigpiod's answers in the kernel until `release_answers`: answers owed to commands sent without
+        waiting then wake nobody as they arrive (the event loop stops watching the socket meanwhile)."""
+        self._read_transport().pause_reading()
+
+    def release_answers(self) -> None:
+        """Read answers again as they arrive (those held come at once)."""
+        self._read_transport().resume_reading()
+
+    def _read_transport(self) -> asyncio.ReadTransport:
+        transport = self._writer.transport
+        assert isinstance(transport, asyncio.ReadTransport)
+        return transport
+
     async def read_answer(self) -> Answer:
         """The next answer on the socket, with its data; a closed socket raises ConnectionResetError."""
         try:
@@ -154,6 +171,47 @@ async def open_notifications(
     return handle, reader, writer
 
 
+NOTIFY_RECEIVE_BUFFER = 1 << 20
+"""Receive buffer asked for a polled notification socket: reports wait in the kernel between two reads."""
+
+
+async def open_notification_socket(host: str, port: int, timeout_s: float) -> tuple[int, socket.socket]:
+    """A notification socket (NOIB) as a plain non-blocking socket that the event loop does not watch; (handle,
+    socket).
+
+    Its owner reads it when it wants the reports (`socket.recv_into` until it would block), so a stream of reports
+    wakes nobody: pigpiod flushes them every millisecond, and an asyncio stream would wake the loop for each flush.
+    """
+    loop = asyncio.get_running_loop()
+    try:
+        async with asyncio.timeout(timeout_s):
+            infos = await loop.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+            family, kind, proto, _, address = infos[0]
+            sock = socket.socket(family, kind, proto)
+            try:
+                sock.setblocking(False)
+                with contextlib.suppress(OSError):  # the kernel caps it (net.core.rmem_max): a wish, not a need
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, NOTIFY_RECEIVE_BUFFER)
+                await loop.sock_connect(sock, address)
+                await loop.sock_sendall(sock, encode_command(Cmd.NOIB))
+                answer = b""
+                while len(answer) < COMMAND.size:
+                    chunk = await loop.sock_recv(sock, COMMAND.size - len(answer))
+                    if not chunk:
+                        raise ConnectionResetError("pigpiod closed the socket before answering NOIB")
+                    answer += chunk
+            except BaseException:
+                sock.close()
+                raise
+    except (OSError, TimeoutError) as error:
+        raise PigpiodUnavailableError(host, port, error or "timed out") from error
+    handle = decode_result(answer)
+    if handle < 0:
+        sock.close()
+        raise PigpioCommandError(Cmd.NOIB, 0, 0, handle)
+    return handle, sock
+
+
 def probe(host: str, port: int, timeout_s: float) -> None:
     """Check that something accepts connections at host:port, or raise PigpiodUnavailableError (blocking)."""
     try:
@@ -161,3 +219,98 @@ def probe(host: str, port: int, timeout_s: float) -> None:
             pass
     except OSError as error:
         raise PigpiodUnavailableError(host, port, error) from error
+
+
+class CommandPipe:
+    """Commands to pigpiod sent without waiting for their answers, from plain (not asyncio) code; never blocks.
+
+    For the motors' hot path: each `send` is one write of all its commands to a non-blocking socket, in order (pigpiod
+    carries out one socket's commands in order), and returns; the answers are read when they have already arrived
+    (at the next `send`, or `collect`), so a refused command is reported one period late, and a pigpiod that stops
+    answering is reported once `MAX_OWED` answers are owed, or the kernel will take no more: the caller stops the
+    motors some other way. pigpio's own client waits for each answer on the caller's thread: on the event loop, a
+    stalled pigpiod would stall everything.
+    """
+
+    MAX_OWED = 256
+    """Answers owed before pigpiod counts as stalled: about a second of motor writes."""
+
+    def __init__(self, host: str, port: int, timeout_s: float) -> None:
+        try:
+            self._sock = socket.create_connection((host, port), timeout=timeout_s)  # blocking: call it off the loop
+        except OSError as error:
+            raise PigpiodUnavailableError(host, port, error) from error
+        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sock.setblocking(False)
+        self._unread = bytearray()
+        self._owed = 0
+        self.broken = False
+        """True once a send failed or pigpiod stopped answering: nothing more is sent."""
+
+    @property
+    def owed(self) -> int:
+        """Answers not yet read."""
+        return self._owed
+
+    def send(self, commands: Sequence[tuple[int, int, int]]) -> None:
+        """Send (cmd, p1, p2) commands in one write, without waiting; raise PigpioCommandError for an earlier command
+        pigpiod refused and ConnectionError when pigpiod is gone or stalled."""
+        self.collect()
+        if self.broken:
+            raise ConnectionError("the command pipe to pigpiod is broken")
+        if self._owed > self.MAX_OWED:
+            self.broken = True
+            raise ConnectionError(f"pigpiod has not answered {self._owed} commands: stalled")
+        data = b"".join(encode_command(cmd, p1, p2) for cmd, p1, p2 in commands)
+        try:
+            sent = self._sock.send(data)
+        except BlockingIOError:
+            sent = 0
+        except OSError:
+            self.broken = True
+            raise
+        if sent < len(data):  # a partial command would garble every one after it
+            self.broken = True
+            raise ConnectionError("pigpiod takes no more commands: stalled")
+        self._owed += len(commands)
+
+    def collect(self) -> None:
+        """Read the answers that have arrived (never waits); raise PigpioCommandError for a refused command."""
+        while True:
+            try:
+                data = self._sock.recv(1 << 16)
+            except BlockingIOError:
+                break
+            except OSError:
+                self.broken = True
+                raise
+            if not data:
+                self.broken = True
+                raise ConnectionResetError("pigpiod closed the command pipe")
+            self._unread += data
+        whole = len(self._unread) - len(self._unread) % COMMAND.size
+        answers, self._unread = bytes(self._unread[:whole]), self._unread[whole:]
+        for offset in range(0, whole, COMMAND.size):
+            answer = answers[offset : offset + COMMAND.size]
+            self._owed -= 1
+            result = decode_result(answer)
+            if result < 0:
+                cmd, p1, p2, _ = COMMAND.unpack(answer)
+                raise PigpioCommandError(cmd, p1, p2, result)
+
+    def flush(self, timeout_s: float) -> bool:
+        """Wait (blocking, at most `timeout_s`) until every command sent has been answered; whether it was. For an
+        orderly close only: a broken pipe returns at once."""
+        deadline = time.monotonic() + timeout_s
+        while self._owed > 0 and not self.broken:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([self._sock], [], [], remaining)[0]:
+                return False
+            with contextlib.suppress(PigpioCommandError):  # closing: a refusal changes nothing any more
+                self.collect()
+        return self._owed <= 0
+
+    def close(self) -> None:
+        """Close the socket (answers not read are dropped)."""
+        self.broken = True
+        self._sock.close()

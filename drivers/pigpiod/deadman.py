@@ -19,7 +19,8 @@ of the latest read, v4 the tick of the read before.
 
 The bump never waits: `bump()` writes PROCU (and, every `status_every` bumps, PROCP) to the socket and returns;
 `watch()` reads the answers in order, reports new trips, and raises DeadmanLostError when pigpiod refuses a command,
-the script is no longer running or the socket closes.
+the script is no longer running or the socket closes. The answers are held in the kernel between two status requests
+and read together after each (PigpioLink.hold_answers): one wake-up per status, not one per heartbeat.
 """
 
 from __future__ import annotations
@@ -102,6 +103,7 @@ class PigpioDeadman:
         self._heartbeat = 0
         self._bumps = 0
         self._outstanding = 0
+        self._statuses_owed = 0
         self._closed = False
         self.trips = 0
 
@@ -154,9 +156,12 @@ class PigpioDeadman:
         if self._bumps % self._status_every == 0:
             self._link.post(Cmd.PROCP, self.script_id)
             self._outstanding += 1
+            self._statuses_owed += 1
+            self._link.release_answers()  # the heartbeats' answers held so far, then this one
 
     async def watch(self, on_trip: Callable[[int], None]) -> None:
         """Read pigpiod's answers to the bumps; call `on_trip` when the trip count grows; raise when lost."""
+        self._link.hold_answers()
         while True:
             answer = await self._link.read_answer()
             self._outstanding -= 1
@@ -165,6 +170,9 @@ class PigpioDeadman:
                 raise DeadmanLostError(f"pigpiod refused the deadman's {Cmd(answer.cmd).name}: {reason}")
             if answer.cmd != Cmd.PROCP:
                 continue
+            self._statuses_owed -= 1
+            if not self._statuses_owed:
+                self._link.hold_answers()  # until the next status request
             state, *params = SCRIPT_STATUS.unpack(answer.data)
             if state not in (ScriptState.RUNNING, ScriptState.WAITING):
                 raise DeadmanLostError(f"the deadman script is {ScriptState(state).name.lower()}")

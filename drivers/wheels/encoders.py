@@ -1,16 +1,23 @@
-"""Wheel encoders read from pigpiod's notification stream in bulk on the event loop.
+"""Wheel encoders read from pigpiod's notification stream in batches paced to their consumers, on the event loop.
 
 Theory of operation: `PigpioEncoders` configures the encoder pins over a command socket (input, pull, glitch
 filter), opens a second socket with NOIB and starts notifications (NB) for the eight pins. pigpiod then writes a
-12-byte report per level change; each read from the socket takes whatever has arrived (hundreds of reports at
-speed) and hands the batch to numpy: sequence gaps counted, ticks unwrapped, quadrature decoded
-(drivers.wheels.quadrature). A publisher task hands `WheelTicks` to the daemon at `publish_rate_hz`. No thread, no
-Python per edge.
+12-byte report per level change, flushed every millisecond. The event loop does not watch that socket: the reports
+wait in the kernel, and the publisher takes them all at each publication (`publish_rate_hz`, on the loop's shared
+grid of wake-ups, drivers.pacing) with one non-blocking receive, and hands the batch to numpy: sequence gaps
+counted, ticks unwrapped, quadrature decoded (drivers.wheels.quadrature); then `WheelTicks` go to the daemon. One
+wake-up per publication, whatever the edge rate: no thread, no Python per edge. The sequence numbers make a lost
+report visible however the reports are batched.
+
+At rest: after `IDLE_AFTER_QUIET` publications in a row that brought no report, the source stops waking at the
+publication rate: it watches the socket for the next edge (publishing at once when it comes, then at the rate again)
+and publishes every `IDLE_KEEPALIVE_S` meanwhile, the heartbeat the daemon's health check reads.
 
 Connection policy: the first connection failing raises `PigpiodUnavailableError` (a wrong host or a stopped pigpiod is
-a configuration problem to report at once). A connection lost later is retried with exponential backoff up to
-`pigpiod.reconnect_max_s`; meanwhile and for the first publication after it, `degraded` is true, the counts keep
-their last values and the speeds read 0. Edges during the outage are lost: the odometry says so, never guesses.
+a configuration problem to report at once). A connection lost later (seen by the publisher's read, or by the
+re-anchoring command) is retried with exponential backoff up to `pigpiod.reconnect_max_s`; meanwhile and for the first
+publication after it, `degraded` is true, the counts keep their last values and the speeds read 0. Edges during the
+outage are lost: the odometry says so, never guesses.
 
 Back-end seam: the daemon depends only on `EncoderSource` (and `WheelTicks`); an lgpio back-end for the Pi 5 and
 Raspberry Pi OS 13, where pigpio does not run, would be a second class with the same `run()`.
@@ -19,8 +26,10 @@ Raspberry Pi OS 13, where pigpio does not run, would be a second class with the 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
+import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,7 +38,8 @@ from typing import Protocol
 import numpy as np
 
 from drivers.backoff import Backoff
-from drivers.pigpiod.client import PigpioCommandError, PigpiodUnavailableError, PigpioLink, open_notifications
+from drivers.pacing import next_tick, sleep_until
+from drivers.pigpiod.client import PigpioCommandError, PigpiodUnavailableError, PigpioLink, open_notification_socket
 from drivers.pigpiod.notifications import SequenceGaps, TickClock
 from drivers.pigpiod.protocol import REPORT_SIZE, Cmd, Mode, Pull, decode_reports
 from drivers.settings import EncoderSettings, PigpiodAddress, in_wheel_order
@@ -37,11 +47,15 @@ from drivers.wheels.quadrature import EdgeTimedSpeed, EncoderWiring, QuadratureD
 
 log = logging.getLogger("robotd.encoders")
 
-DECODE_BATCH_BYTES = 1 << 16
-"""Reports gathered before decoding without waiting for the next publication (5461 reports)."""
+READ_CHUNK_BYTES = 1 << 16
+"""One receive takes up to this much (5461 reports); a fuller kernel buffer takes another."""
 RESYNC_PERIOD_S = 5.0
-FIRST_RETRY_S = 0.05
 """How often the tick-to-monotonic map is re-anchored (follows drift between pigpio's and the kernel's clocks)."""
+FIRST_RETRY_S = 0.05
+IDLE_AFTER_QUIET = 10
+"""Publications in a row without a report before the source waits for an edge instead of the clock."""
+IDLE_KEEPALIVE_S = 0.5
+"""An idle source still publishes this often: publications are the filter's heartbeat for the daemon's health check."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,6 +122,11 @@ class PigpioEncoders:
         self._gaps = SequenceGaps()
         self._tick_clock: TickClock | None = None
         self._unread = bytearray()
+        self._stream: socket.socket | None = None  # the notification socket while it is up (polled, never watched)
+        self._lost = asyncio.Event()  # the publisher found the stream broken
+        self._lost_error: BaseException | None = None
+        self._edge: asyncio.Future[None] | None = None  # an idle publisher waiting for the next edge
+        self.wakeups = 0  # publications, for the tests' count of the source's own wake-ups
         self._connected = False
         self._degraded = False
         self._reports = 0
@@ -135,32 +154,37 @@ class PigpioEncoders:
 
     async def run(self, on_ticks: Callable[[WheelTicks], None]) -> None:
         """Connect (or raise PigpiodUnavailableError), then publish wheel ticks until cancelled."""
-        link, notifications = await self._connect()
+        link = await self._connect()
         async with asyncio.TaskGroup() as tasks:
             tasks.create_task(self._publish(on_ticks), name="encoders-publish")
-            tasks.create_task(self._stay_connected(link, notifications), name="encoders-stream")
+            tasks.create_task(self._stay_connected(link), name="encoders-stream")
 
-    async def _connect(self) -> tuple[PigpioLink, tuple[int, asyncio.StreamReader, asyncio.StreamWriter]]:
-        """Configure the pins and start notifications; returns the command link and the notification socket."""
+    async def _connect(self) -> PigpioLink:
+        """Configure the pins and start notifications on a polled socket; returns the command link."""
         host, port, timeout = self._pigpiod.host, self._pigpiod.port, self._pigpiod.connect_timeout_s
         link = await PigpioLink.connect(host, port, timeout)
+        stream: socket.socket | None = None
         try:
             for encoder in self._wiring:
                 for gpio in (encoder.a, encoder.b):
                     await link.command(Cmd.MODES, gpio, Mode.INPUT)
                     await link.command(Cmd.PUD, gpio, _PULLS[self._encoders.pull])
                     await link.command(Cmd.FG, gpio, self._encoders.glitch_filter_us)
-            notifications = await open_notifications(host, port, timeout)
+            handle, stream = await open_notification_socket(host, port, timeout)
             levels = await link.command(Cmd.BR1, unsigned=True)
             before = self._clock()
             tick = await link.command(Cmd.TICK, unsigned=True)
             self.begin_stream(levels, tick, (before + self._clock()) / 2)
-            await link.command(Cmd.NB, notifications[0], self._mask)
+            await link.command(Cmd.NB, handle, self._mask)
         except BaseException:
             self._connected = False
+            if stream is not None:
+                stream.close()
             await link.close()
             raise
-        return link, notifications
+        self._stream = stream
+        self._lost.clear()
+        return link
 
     def begin_stream(self, levels: int, tick: int, monotonic_s: float) -> None:
         """Start decoding a new stream from bank-1 `levels`, with `tick` read at `monotonic_s`.
@@ -174,32 +198,29 @@ class PigpioEncoders:
         self._speed = EdgeTimedSpeed(len(self._wiring), stale_after_us=self._stale_after_us())
         self._connected = True
 
-    async def _stay_connected(
-        self, link: PigpioLink, notifications: tuple[int, asyncio.StreamReader, asyncio.StreamWriter]
-    ) -> None:
-        """Read the stream; when it breaks, reconnect with backoff."""
+    async def _stay_connected(self, link: PigpioLink) -> None:
+        """Re-anchor the tick map while the stream is up; when it breaks, reconnect with backoff."""
         backoff = Backoff(FIRST_RETRY_S, self._pigpiod.reconnect_max_s)
         while True:
             try:
                 async with asyncio.TaskGroup() as tasks:
-                    tasks.create_task(self._read(notifications[1]))
+                    tasks.create_task(self._until_lost())
                     tasks.create_task(self._resync(link))
-            except* (OSError, EOFError, asyncio.IncompleteReadError) as group:
+            except* (OSError, EOFError) as group:
                 log.warning(
                     "encoder stream from pigpiod lost (%s): odometry degraded, reconnecting", group.exceptions[0]
                 )
             finally:
-                self._drain()  # what arrived before the break still counts
-                self._connected = False
+                self._read_available()  # what arrived before the break still counts
+                self._close_stream()
                 self._degraded = True
-                notifications[2].close()
                 await link.close()
             while True:
                 await asyncio.sleep(backoff.next_delay())
                 try:
                     # bounded as a whole: a pigpiod that accepts but stalls must not hold the encoders forever
                     async with asyncio.timeout(4 * self._pigpiod.connect_timeout_s):
-                        link, notifications = await self._connect()
+                        link = await self._connect()
                 except (PigpiodUnavailableError, OSError, PigpioCommandError) as error:
                     log.debug("encoders: pigpiod still unavailable: %s", error)
                     continue
@@ -208,19 +229,57 @@ class PigpioEncoders:
                 log.info("encoder stream from pigpiod restored")
                 break
 
-    async def _read(self, reader: asyncio.StreamReader) -> None:
-        """Take reports off the socket as they arrive; decode them in batches of DECODE_BATCH_BYTES or at publication.
+    async def _until_lost(self) -> None:
+        """Return never; raise what broke the stream once the publisher's read finds it broken."""
+        await self._lost.wait()
+        self._lost.clear()
+        assert self._lost_error is not None
+        raise self._lost_error
 
-        pigpiod flushes notifications every millisecond; decoding each small read would pay numpy's fixed cost per
-        call a thousand times a second, so reads are only gathered here.
-        """
-        while True:
-            data = await reader.read(DECODE_BATCH_BYTES)
-            if not data:
-                raise EOFError("pigpiod closed the notification socket")
-            self._unread += data
-            if len(self._unread) >= DECODE_BATCH_BYTES:
-                self._drain()
+    def _read_available(self) -> int:
+        """Take every report the kernel holds into the decoder; the bytes read. A broken stream reads as nothing
+        and is handed to the reconnection (`_until_lost`)."""
+        stream = self._stream
+        if stream is None:
+            return 0
+        received = 0
+        try:
+            while True:
+                data = stream.recv(READ_CHUNK_BYTES)
+                if not data:
+                    raise EOFError("pigpiod closed the notification socket")
+                self._unread += data
+                received += len(data)
+                if len(data) < READ_CHUNK_BYTES:  # that was all: no second call only to hear it would block
+                    break
+        except BlockingIOError:
+            pass
+        except (OSError, EOFError) as error:
+            self._drain()
+            self._close_stream()
+            self._lost_error = error
+            self._lost.set()
+            return received
+        self._drain()
+        return received
+
+    def _close_stream(self) -> None:
+        """Stop reading the notification socket and close it (odometry degraded until the next stream)."""
+        stream, self._stream = self._stream, None
+        self._connected = False
+        self._degraded = True
+        if stream is None:
+            return
+        self._stop_watching(stream)
+        stream.close()
+
+    def _stop_watching(self, stream: socket.socket) -> None:
+        edge, self._edge = self._edge, None
+        if edge is not None:
+            with contextlib.suppress(ValueError, OSError):  # already closed: nothing is watched any more
+                asyncio.get_running_loop().remove_reader(stream.fileno())
+            if not edge.done():
+                edge.set_result(None)
 
     def _drain(self) -> None:
         """Decode every whole report read so far."""
@@ -253,18 +312,37 @@ class PigpioEncoders:
                 self._tick_clock.anchor(tick, (before + self._clock()) / 2)
 
     async def _publish(self, on_ticks: Callable[[WheelTicks], None]) -> None:
+        """Read the reports and publish at the rate, on the shared grid; at rest, only on an edge or a keep-alive."""
         period = 1.0 / self._encoders.publish_rate_hz
         loop = asyncio.get_running_loop()
-        deadline = loop.time()
+        deadline = next_tick(loop.time(), period)
+        quiet = 0
         while True:
-            deadline += period
-            await asyncio.sleep(max(0.0, deadline - loop.time()))
+            if quiet >= IDLE_AFTER_QUIET and self._stream is not None:
+                await self._until_edge(self._stream, IDLE_KEEPALIVE_S)
+                deadline = next_tick(loop.time(), period)
+            else:
+                await sleep_until(deadline)
+                deadline += period
+                if deadline <= loop.time():  # the loop stalled: back on the grid rather than a burst of publications
+                    deadline = next_tick(loop.time(), period)
+            self.wakeups += 1
+            quiet = 0 if self._read_available() else quiet + 1
             on_ticks(self.snapshot())
 
+    async def _until_edge(self, stream: socket.socket, timeout_s: float) -> None:
+        """Wait until a report arrives on `stream` (or it closes), or `timeout_s` passes."""
+        loop = asyncio.get_running_loop()
+        self._edge = edge = loop.create_future()
+        loop.add_reader(stream.fileno(), _wake, edge)
+        try:
+            await asyncio.wait([edge], timeout=timeout_s)
+        finally:
+            if self._edge is edge:
+                self._stop_watching(stream)
+
     def snapshot(self) -> WheelTicks:
-        """The wheel ticks now; clears the degraded flag once reported."""
-        if self._connected:
-            self._drain()
+        """The wheel ticks now (of the reports read so far); clears the degraded flag once reported."""
         now = self._clock()
         if self._connected and self._tick_clock is not None:
             speeds = self._speed.update(self._decoder, self._tick_clock.to_unwrapped(now)) * self._radians_per_count
@@ -274,3 +352,8 @@ class PigpioEncoders:
         c = self._decoder.counts
         s = [float(v) for v in speeds]
         return WheelTicks(now, (int(c[0]), int(c[1]), int(c[2]), int(c[3])), (s[0], s[1], s[2], s[3]), degraded)
+
+
+def _wake(edge: asyncio.Future[None]) -> None:
+    if not edge.done():
+        edge.set_result(None)

@@ -21,8 +21,9 @@ from collections.abc import Iterator
 from types import FrameType, TracebackType
 from typing import Any, Protocol, Self
 
-from drivers.pigpiod.client import PigpiodUnavailableError, probe
+from drivers.pigpiod.client import CommandPipe, PigpiodUnavailableError, probe
 from drivers.pigpiod.deadman import remove_deadmen
+from drivers.pigpiod.protocol import Cmd
 from drivers.settings import MotorPinsLike, MotorSettings, PigpiodAddress, in_wheel_order
 
 Duties = tuple[float, float, float, float]
@@ -90,11 +91,15 @@ class _Channel:
 class GpiozeroMotors:
     """The four L298 channels on gpiozero's PiGPIOFactory; a context manager that zeroes the motors on exit.
 
-    gpiozero creates and owns the pins (modes, PWM frequency and range, release on close). The hot path, one
-    `set_duties` per control period, writes through the factory's pigpio connection instead: gpiozero's PWM setter
-    makes three round trips per change (read the range, read the duty, write) and each direction pin is its own
-    write, about 20 round trips to start four wheels from rest; here the range is read once, the eight direction
-    pins change in two bank writes, and each enable in one, so a command reaches the motors in 6 round trips at most.
+    gpiozero creates and owns the pins (modes, PWM frequency and range, release on close): it is good at that, and
+    it runs once, off the event loop. The hot path leaves it: one `set_duties` per control period goes through a
+    `CommandPipe`, every command of a period in one write that never waits for pigpiod's answers. gpiozero's PWM
+    setter makes three blocking round trips per change (read the range, read the duty, write), each a sleep of the
+    event loop's thread, and a stalled pigpiod would stall the loop with it; here the range is read once, the eight
+    direction pins change in two bank writes and each enable in one, all in order on one socket (the bridge rule
+    holds), and the answers are read when they have arrived. A pigpiod that refuses, stalls or goes away makes
+    `set_duties` raise (the daemon then reconnects); `zero` and `close` write through the pipe too, and fall back
+    to gpiozero's connection only when the pipe is broken.
     """
 
     def __init__(self, motors: MotorSettings, pigpiod: PigpiodAddress) -> None:
@@ -106,11 +111,14 @@ class GpiozeroMotors:
         self._factory: Any = PiGPIOFactory(host=pigpiod.host, port=pigpiod.port)
         self._pi: Any = self._factory.connection
         self._channels: list[_Channel] = []
+        self._pipe: CommandPipe | None = None
+        self._flush_timeout_s = pigpiod.connect_timeout_s
         enables, directions = enable_and_direction_pins(motors)
         try:
             remove_deadmen(self._pi, [*enables, *directions])  # before it can stop these motors
             for pins in wheel_pins(motors):
                 self._channels.append(_Channel(pins, motors.pwm_frequency_hz, self._factory))
+            self._pipe = CommandPipe(pigpiod.host, pigpiod.port, pigpiod.connect_timeout_s)
         except BaseException:
             self.close()
             raise
@@ -130,29 +138,47 @@ class GpiozeroMotors:
             raise
 
     def _write(self, targets: list[tuple[int, int]]) -> None:
-        pi = self._pi
+        commands: list[tuple[int, int, int]] = []
         low = high = 0
         for channel, (direction, _) in zip(self._channels, targets, strict=True):
             if direction == channel.direction:
                 continue
             if channel.counts:
                 # Enable off before the inputs change: never drive the bridge through a half-switched state.
-                pi.set_PWM_dutycycle(channel.enable_gpio, 0)
+                commands.append((Cmd.PWM, channel.enable_gpio, 0))
                 channel.counts = 0
             low |= channel.in1_bit | channel.in2_bit
             high |= channel.in1_bit if direction > 0 else channel.in2_bit if direction < 0 else 0
             channel.direction = direction
         if low:
-            pi.clear_bank_1(low)
+            commands.append((Cmd.BC1, low, 0))
         if high:
-            pi.set_bank_1(high)
+            commands.append((Cmd.BS1, high, 0))
         for channel, (_, counts) in zip(self._channels, targets, strict=True):
             if counts != channel.counts:
-                pi.set_PWM_dutycycle(channel.enable_gpio, counts)
+                commands.append((Cmd.PWM, channel.enable_gpio, counts))
                 channel.counts = counts
+        if commands:
+            self._send(commands)
+
+    def _send(self, commands: list[tuple[int, int, int]]) -> None:
+        if self._pipe is None:
+            raise ConnectionError("the motor outputs are closed")
+        self._pipe.send(commands)
 
     def zero(self) -> None:
         """Stop every motor (coast): enable at 0, both inputs low; every pin is written, whatever was cached."""
+        directions = 0
+        for channel in self._channels:
+            channel.counts, channel.direction = 0, 0
+            directions |= channel.in1_bit | channel.in2_bit
+        stop = [(Cmd.PWM, channel.enable_gpio, 0) for channel in self._channels]  # enables first: the bridge rule
+        try:
+            self._send([*stop, (Cmd.BC1, directions, 0)])
+        except Exception:  # noqa: BLE001 - the pipe is broken: try gpiozero's own connection
+            self._zero_through_gpiozero()
+
+    def _zero_through_gpiozero(self) -> None:
         for channel in self._channels:
             with contextlib.suppress(Exception):  # zero the others even if one pin fails
                 channel.enable.value = 0.0
@@ -165,9 +191,18 @@ class GpiozeroMotors:
         """Zero the motors, leave every motor pin an output driven low, and disconnect."""
         self.zero()
         enables, directions = enable_and_direction_pins(self._motors)
-        for gpio in [*enables, *directions]:  # enables first: the bridge rule
-            with contextlib.suppress(Exception):  # pigpiod gone: nothing is driven any more
-                self._pi.write(gpio, 0)
+        pins = [*enables, *directions]  # enables first: the bridge rule
+        pipe, self._pipe = self._pipe, None
+        written = False
+        if pipe is not None:
+            with contextlib.suppress(Exception):  # pigpiod gone or stalled: gpiozero's connection is tried below
+                pipe.send([(Cmd.WRITE, gpio, 0) for gpio in pins])
+                written = pipe.flush(self._flush_timeout_s)  # carried out before gpiozero lets go of the pins
+            pipe.close()
+        if not written:
+            for gpio in pins:
+                with contextlib.suppress(Exception):  # pigpiod gone: nothing is driven any more
+                    self._pi.write(gpio, 0)
         # gpiozero's close returns its pins to inputs, which would leave the L298's inputs floating; on a stopped
         # connection it writes nothing, so stop it first and let gpiozero only forget its devices.
         with contextlib.suppress(Exception):

@@ -10,6 +10,8 @@ fixes at 16 Hz. Five pose clients read the Unix socket from one thread that stam
   pin (the last one the daemon writes) is polled with the real `pigpio` client until its duty is non-zero; the
   figure is an upper bound (the end of the poll that saw the change).
 - CPU and memory of the daemon process from /proc/PID/stat and /proc/PID/status while driving at 0.5 m/s.
+- Wake-ups (voluntary context switches), system calls and CPU at rest and driving at 0.3 m/s, before any pose client
+  connects, as under `robotd sim` alone (robotd.bench.budget).
 - Flood: one local process sends to the teleop port as fast as it can for 10 s (random and mutated datagrams, and
   1 in 8 a valid stop; see `robotd.bench.flood`); the control loop's worst tick interval and p99 (from the status
   messages whose one-second window lies inside the flood) against its period, with what the daemon read,
@@ -268,11 +270,14 @@ def run(quick: bool) -> dict[str, float]:
     with tempfile.TemporaryDirectory(prefix="robotd-bench-") as tmp:
         out = Path(tmp)
         with running(bench_config(out, BENCH_OVERRIDES), out) as (config, _vhw, daemon):
-            clients = PoseClients(config.pose_socket.path, POSE_CLIENTS)
-            clients.start()
             link = UdpLink("127.0.0.1", config.teleop.port, None)
             if not link.sync(5.0):
                 raise RuntimeError("the daemon did not answer the teleop hello")
+            from robotd.bench import budget  # noqa: PLC0415 - it imports this module
+
+            figures |= budget.report(budget.measure(daemon.pid, link, 3.0 if quick else 10.0, drive_back_and_forth))
+            clients = PoseClients(config.pose_socket.path, POSE_CLIENTS)
+            clients.start()
             pi: Any = pigpio.pi("127.0.0.1", config.pigpiod.port, show_errors=False)
             try:
                 cpu0, wall0 = cpu_seconds(daemon.pid), time.monotonic()

@@ -22,6 +22,10 @@ class PeriodStats:
         while self._ticks and self._ticks[0][0] < now - self.window_s:
             self._ticks.popleft()
 
+    def pause(self) -> None:
+        """The loop stops ticking for a while: the interval until its next tick is not a period."""
+        self._previous = None
+
     def summary(self) -> dict[str, float | int]:
         """{"p50_ms", "p99_ms", "max_ms", "ticks"} over the window (NaN without a tick; encoded as null)."""
         intervals = sorted(interval for _, interval in self._ticks)

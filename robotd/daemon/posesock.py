@@ -142,12 +142,17 @@ class PoseServer:
         self._server: asyncio.AbstractServer | None = None
         self._clients: dict[asyncio.Task[None], _Client] = {}
         self._closing = asyncio.Event()
+        self._listened = asyncio.Event()  # set while at least one client is connected
         self.counters = {"connected": 0, "refused": 0, "dropped_messages": 0, "stalled": 0, "published": 0}
 
     @property
     def clients(self) -> int:
         """Clients connected now."""
         return len(self._clients)
+
+    async def wait_for_clients(self) -> None:
+        """Return once at least one client is connected (at once if one is)."""
+        await self._listened.wait()
 
     async def start(self) -> None:
         """Listen on the socket path (removing a stale socket left by a crash), with the configured mode."""
@@ -204,6 +209,7 @@ class PoseServer:
         client = _Client(collections.deque([self.hello], maxlen=self.queue_size), asyncio.Event())
         client.wake.set()
         self._clients[task] = client
+        self._listened.set()
         self.counters["connected"] += 1
         try:
             parts = (
@@ -219,6 +225,8 @@ class PoseServer:
                 await asyncio.gather(*parts, return_exceptions=True)
         finally:
             del self._clients[task]
+            if not self._clients:
+                self._listened.clear()
             writer.close()
             with contextlib.suppress(OSError, asyncio.CancelledError):
                 await writer.wait_closed()

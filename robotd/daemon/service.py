@@ -39,15 +39,17 @@ from drivers.backoff import Backoff
 from drivers.marvelmind.events import Event as MarvelmindEvent
 from drivers.marvelmind.events import FixUnavailable, Position, StationaryBeacons
 from drivers.marvelmind.reader import MarvelmindReader
+from drivers.pacing import next_tick, sleep_until
 from drivers.pigpiod.client import PigpioCommandError
 from drivers.pigpiod.protocol import ProtocolError
 from drivers.wheels.encoders import EncoderSource, WheelTicks
 from drivers.wheels.motors import MotorOutputs
 from robotd.config.model import RobotdConfig
 from robotd.daemon import calibration_store, posesock
-from robotd.daemon.control import MotionController, StallFault
+from robotd.daemon.control import ControlState, MotionController, StallFault
 from robotd.daemon.deadman_keeper import DeadmanFactory, DeadmanKeeper
 from robotd.daemon.hardware import Hardware, build_hardware
+from robotd.daemon.pacer import ControlPacer
 from robotd.daemon.periodstats import PeriodStats
 from robotd.daemon.recorder import Recorder, create_log, daemon_meta
 from robotd.daemon.sdnotify import Notifier
@@ -159,6 +161,7 @@ class Daemon:
             max_clients=pose_socket.max_clients,
         )
         self.control_periods = PeriodStats()
+        self.pacer = ControlPacer(self.controller.period_s, config.teleop.deadman_timeout_s)
         self._last_fix_arrival: float | None = None
         self._teleop = _Teleop()
         self._alive = _Liveness()
@@ -219,6 +222,7 @@ class Daemon:
         # The command reaches the motors now, not at the next period; but at most one command per half period
         # does, so a flood of valid commands cannot run the controller and the motor writes at its rate: the
         # control loop applies a command that arrives sooner at its next tick.
+        self.pacer.command_arrived()  # a loop at rest steps at once and resumes its period
         now = self.clock()
         if now - teleop.stepped_at >= 0.5 * self.controller.period_s:
             teleop.stepped_at = now
@@ -300,22 +304,27 @@ class Daemon:
         raise _Shutdown
 
     async def _control_loop(self) -> None:
-        """Step the controller at its rate (a command also steps it at once, from `_on_teleop`)."""
-        period = self.controller.period_s
-        next_tick = self.clock()
+        """Step the controller at its rate, or at rest only for the deadman's heartbeat (robotd.daemon.pacer); a
+        command also steps it at once, from `_on_teleop`."""
         while True:
             now = self.clock()
-            self.control_periods.tick(now)
             self._control_step(now)
             if self.viewer is not None:
                 self.viewer.control(now, self.controller.last, self._wheel_speeds)
             self.deadman.bump()  # from here, not from a task of its own: a loop that stops stepping stops bumping
-            next_tick += period
-            if next_tick < now:  # the loop stalled: restart the schedule rather than bursting
-                next_tick = now + period
-            # one sleep per period: asyncio may wake a timer up to its clock resolution early, and a loop that
-            # re-checked the time would then take a burst of tiny steps
-            await asyncio.sleep(next_tick - now)
+            at_rest = self._at_rest(now)
+            if at_rest:
+                self.control_periods.pause()  # a parked robot's heartbeat is not a control period
+            else:
+                self.control_periods.tick(now)
+            await self.pacer.next_step(at_rest=at_rest)
+
+    def _at_rest(self, now: float) -> bool:
+        """Motors off and no command for the deadman timeout: nothing changes until a command arrives."""
+        received = self._teleop.received_at
+        if received is not None and now - received <= self.config.teleop.deadman_timeout_s:
+            return False
+        return self.controller.last.state is not ControlState.DRIVING
 
     def _control_step(self, now: float) -> None:
         teleop = self._teleop
@@ -400,8 +409,12 @@ class Daemon:
     async def _pose_loop(self) -> None:
         period = 1.0 / self.config.pose_socket.rate_hz
         next_status = self.clock()
+        loop = asyncio.get_running_loop()
         while True:
-            await asyncio.sleep(period)
+            if self.fleet is None and self.viewer is None:
+                await self.pose_server.wait_for_clients()  # nobody listening: nothing to wake for
+            # on the shared grid: at 20 Hz every other wake-up is the control loop's at 50 Hz
+            await sleep_until(next_tick(loop.time(), period))
             self._publish_pose()
             now = self.clock()
             if now >= next_status:
@@ -412,6 +425,8 @@ class Daemon:
                     self.viewer.status(status)
 
     def _publish_pose(self) -> None:
+        if not self.pose_server.clients and self.fleet is None and self.viewer is None:
+            return  # the filter's estimate at a fix is for readers: without one, it is not worth building
         now = self.clock()
         estimate = self.estimator.pose(now)
         health = self.marvelmind.health(now)
@@ -467,9 +482,7 @@ class Daemon:
             drivers["viewer"] = self.viewer.counters()
         if self.fleet is not None:
             drivers["fleet"] = self.fleet.counters()
-        calibration = self.estimator.calibration
-        self._calibration_keeper.maybe_save(calibration, now)
-        diagnostics = {**self.estimator.counters, "calibration": calibration.as_dict()}
+        diagnostics = {**self.estimator.counters, "calibration": self.estimator.calibration.as_dict()}
         return posesock.status_message(t=now, stamp=time.time(), drivers=drivers, filter_diagnostics=diagnostics)
 
     async def _health_loop(self) -> None:
@@ -484,6 +497,8 @@ class Daemon:
             filter_ok = now - self._alive.filter < filter_limit + period
             if control_ok and filter_ok:
                 self.notifier.watchdog()
+            # here, not with the status: the status is built only for readers, the calibration is kept regardless
+            self._calibration_keeper.maybe_save(self.estimator.calibration, now)
             estimate = self.estimator.pose(now)
             health = self.marvelmind.health(now)
             self.notifier.status(

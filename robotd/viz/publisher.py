@@ -137,7 +137,9 @@ class Publisher:
 
     def pose(self, message: dict[str, Any]) -> None:
         """A pose as the pose socket sends it: the fused pose, its ellipse, the frame tree, the odometry alone."""
-        t = float(message["t"])
+        t = float(message["t"]) if message["t"] is not None else math.nan
+        if not math.isfinite(t):
+            return  # the daemon's pose before its first input: nowhere to draw it, no time to stamp it
         t_ns = self.clock.at(t)
         fused = (float(message["x"]), float(message["y"]), float(message["theta"]))
         cov: list[float] = message["covariance"]

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Callable
 
 import numpy as np
 import numpy.typing as npt
 
-from drivers.virtual.quadrature_signal import GRAY_CYCLE
+from drivers.virtual.pigpiod import VirtualPigpiod
+from drivers.virtual.quadrature_signal import GRAY_CYCLE, encoder_words, merge_streams, position_of_state
+from drivers.wheels.encoders import wiring
+from robotd.config.model import EncodersConfig
 
 
 def wait_until(condition: Callable[[], bool], timeout_s: float = 3.0) -> None:
@@ -37,3 +41,34 @@ def walk(start: int, moves: list[int]) -> list[int]:
         position += move
         positions.append(position)
     return positions
+
+
+def drive_wheels(
+    server: VirtualPigpiod,
+    encoders: EncodersConfig,
+    moves: list[list[int]],
+    spacing_us: int = 20,
+    start: int | None = None,
+) -> np.ndarray:
+    """Drive each wheel through its +1/-1 edge moves, starting from the pins' present state, interleaved in time, from
+    tick `start` (default: a millisecond from now)."""
+    streams, mask, levels = [], 0, 0
+    start = server.tick() + 1000 if start is None else start
+    for index, encoder in enumerate(wiring(encoders)):
+        a, b = server.level(encoder.a), server.level(encoder.b)
+        levels |= a << encoder.a | b << encoder.b
+        positions = walk(position_of_state(a << 1 | b), moves[index])
+        ticks = start + np.arange(len(positions), dtype=np.int64) * spacing_us * 4 + index * spacing_us
+        bits = (1 << encoder.a) | (1 << encoder.b)
+        streams.append((ticks, encoder_words(positions, encoder.a, encoder.b), bits))
+        mask |= bits
+    ticks, words = merge_streams(streams, levels)
+    driven = (ticks & 0xFFFFFFFF).astype(np.uint32)
+    server.drive_levels(driven, words, mask)
+    return driven
+
+
+async def eventually(condition: Callable[[], bool], timeout_s: float = 3.0) -> None:
+    async with asyncio.timeout(timeout_s):
+        while not condition():
+            await asyncio.sleep(0.005)

@@ -4,17 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import socket
-from collections.abc import Callable
 from dataclasses import replace
 
-import numpy as np
 import pytest
-from wheels_support import wait_until, walk
+from wheels_support import drive_wheels, eventually, wait_until
 
 from drivers.pigpiod.client import PigpiodUnavailableError
 from drivers.pigpiod.protocol import Mode, Pull
 from drivers.virtual.pigpiod import VirtualPigpiod
-from drivers.virtual.quadrature_signal import encoder_words, merge_streams, position_of_state
 from drivers.wheels.encoders import PigpioEncoders, WheelTicks, wiring
 from drivers.wheels.quadrature import Decoding
 from robotd.bench.encoders import CallbackEncoders
@@ -25,37 +22,6 @@ from robotd.config.model import EncodersConfig, PigpiodConfig
 # stamped at the present tick, missed it once the connection took longer than that).
 NEAR_WRAP = (1 << 32) - 5_000_000
 BEFORE_WRAP = (1 << 32) - 40_000
-
-
-def drive_wheels(
-    server: VirtualPigpiod,
-    encoders: EncodersConfig,
-    moves: list[list[int]],
-    spacing_us: int = 20,
-    start: int | None = None,
-) -> np.ndarray:
-    """Drive each wheel through its +1/-1 edge moves, starting from the pins' present state, interleaved in time, from
-    tick `start` (default: a millisecond from now)."""
-    streams, mask, levels = [], 0, 0
-    start = server.tick() + 1000 if start is None else start
-    for index, encoder in enumerate(wiring(encoders)):
-        a, b = server.level(encoder.a), server.level(encoder.b)
-        levels |= a << encoder.a | b << encoder.b
-        positions = walk(position_of_state(a << 1 | b), moves[index])
-        ticks = start + np.arange(len(positions), dtype=np.int64) * spacing_us * 4 + index * spacing_us
-        bits = (1 << encoder.a) | (1 << encoder.b)
-        streams.append((ticks, encoder_words(positions, encoder.a, encoder.b), bits))
-        mask |= bits
-    ticks, words = merge_streams(streams, levels)
-    driven = (ticks & 0xFFFFFFFF).astype(np.uint32)
-    server.drive_levels(driven, words, mask)
-    return driven
-
-
-async def eventually(condition: Callable[[], bool], timeout_s: float = 3.0) -> None:
-    async with asyncio.timeout(timeout_s):
-        while not condition():
-            await asyncio.sleep(0.005)
 
 
 async def stop(task: asyncio.Task[None]) -> None:

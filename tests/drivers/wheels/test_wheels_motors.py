@@ -33,10 +33,10 @@ def test_duties_set_direction_pins_and_enable_pwm(server: VirtualPigpiod) -> Non
     motors = MotorsConfig()
     with GpiozeroMotors(motors, PigpiodConfig(port=server.port)) as outputs_:
         assert outputs(server, motors) == [(0.0, 0, 0)] * 4  # zero from the start
-        outputs_.set_duties((0.5, -0.25, 0.0, 1.0))
-        assert outputs(server, motors) == [(0.5, 1, 0), (0.25, 0, 1), (0.0, 0, 0), (1.0, 1, 0)]
+        outputs_.set_duties((0.5, -0.25, 0.0, 1.0))  # sent without waiting: pigpiod carries it out a moment later
+        wait_until(lambda: outputs(server, motors) == [(0.5, 1, 0), (0.25, 0, 1), (0.0, 0, 0), (1.0, 1, 0)])
         outputs_.set_duties((-0.5, -0.25, 0.1, 0.0))  # a reversal, an unchanged wheel, a start, a stop
-        assert outputs(server, motors) == [(0.5, 0, 1), (0.25, 0, 1), (0.1, 1, 0), (0.0, 0, 0)]
+        wait_until(lambda: outputs(server, motors) == [(0.5, 0, 1), (0.25, 0, 1), (0.1, 1, 0), (0.0, 0, 0)])
         assert server.pwm_frequency(motors.wheels.front_left.enable) == motors.pwm_frequency_hz
 
 
@@ -46,7 +46,7 @@ def test_limit_and_wheel_sign_are_applied(server: VirtualPigpiod) -> None:
     motors = replace(motors, wheels=wheels)
     with GpiozeroMotors(motors, PigpiodConfig(port=server.port)) as outputs_:
         outputs_.set_duties((0.9, 0.3, -2.0, float("nan")))
-        assert outputs(server, motors) == [(0.6, 1, 0), (0.3, 0, 1), (0.6, 0, 1), (0.0, 0, 0)]
+        wait_until(lambda: outputs(server, motors) == [(0.6, 1, 0), (0.3, 0, 1), (0.6, 0, 1), (0.0, 0, 0)])
     assert command_duty(0.3, -1, 1.0) == -0.3
 
 
@@ -56,7 +56,7 @@ def test_motors_are_zeroed_when_the_program_raises(server: VirtualPigpiod) -> No
     def control_loop_that_fails() -> None:
         with GpiozeroMotors(motors, PigpiodConfig(port=server.port)) as running:
             running.set_duties((0.7, 0.7, -0.7, -0.7))
-            assert server.pwm_duty(motors.wheels.front_left.enable) == pytest.approx(0.7)
+            wait_until(lambda: server.pwm_duty(motors.wheels.front_left.enable) == pytest.approx(0.7))
             raise RuntimeError("control loop failed")
 
     with pytest.raises(RuntimeError, match="control loop failed"):

@@ -132,3 +132,17 @@ async def test_the_viewer_never_blocks_the_daemon_a_full_queue_drops_and_counts(
         viewer.status({"t": 1.0, "type": "status"})
     assert viewer.dropped == 100 - 16
     assert daemon._status_message(1.0)["drivers"]["viewer"]["dropped"] == 84
+
+
+async def test_a_daemon_with_a_viewer_and_no_input_yet_publishes_without_a_fault(tmp_path: Path) -> None:
+    """Before its first wheel tick or fix the daemon's estimate has no time; the view skips it rather than fail."""
+    config = daemon_config(tmp_path, viewer={"enabled": True, "port": 0}, pose_socket={"rate_hz": 50.0})
+    silent = FakeEncoders(time.monotonic, period_s=3600.0)  # no tick during the test
+    daemon = Daemon(config, encoders=silent, motors_factory=FakeMotors)
+    async with running(daemon):
+        viewer = daemon.viewer
+        assert viewer is not None
+        await until(lambda: viewer.published > 0 and viewer.counters()["queued"] == 0)
+        await asyncio.sleep(0.3)  # several pose periods with no input at all
+        assert silent.published == 0
+        assert viewer.counters()["state"] == "running"

@@ -73,4 +73,5 @@ async def test_a_foxglove_client_watches_the_virtual_robot_through_robotd_sim(ou
         assert odometry.pose_covariance[0] == pose["covariance"][0]
         assert odometry.pose_covariance[6 * 5 + 5] == pose["covariance"][8]
     assert matched >= 5, f"only {matched} poses of the live view matched the pose socket's"
-    assert "Traceback" not in (out / "daemon.log").read_text()
+    daemon_log = (out / "daemon.log").read_text()
+    assert "Traceback" not in daemon_log, daemon_log

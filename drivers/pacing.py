@@ -1,0 +1,38 @@
+"""Periodic wake-ups on a shared grid of loop time, so tasks of the same rate wake together.
+
+Theory of operation. Every wake-up of the event loop costs a context switch and a pass through asyncio's machinery,
+whatever the loop then does. Two tasks at 50 Hz that each sleep their own period from their own start wake the
+loop 100 times a second; scheduled at the multiples of their period on the loop's clock (`next_tick`) and woken at
+exactly that time (`sleep_until`, one `call_at` rather than a `sleep` whose start drifts by the time the caller took),
+they fall due in the same pass of the loop and wake it 50 times. A rate that divides another's (20 Hz and 100 Hz)
+shares its wake-ups as well.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+
+def next_tick(now: float, period_s: float) -> float:
+    """The first multiple of `period_s` after `now` (loop time)."""
+    return (math.floor(now / period_s) + 1) * period_s
+
+
+async def sleep_until(deadline: float) -> None:
+    """Sleep until the loop's clock reaches `deadline` (at once when it has)."""
+    loop = asyncio.get_running_loop()
+    if deadline <= loop.time():
+        await asyncio.sleep(0)
+        return
+    woken: asyncio.Future[None] = loop.create_future()
+    timer = loop.call_at(deadline, _wake, woken)
+    try:
+        await woken
+    finally:
+        timer.cancel()
+
+
+def _wake(woken: asyncio.Future[None]) -> None:
+    if not woken.done():
+        woken.set_result(None)
