@@ -142,7 +142,7 @@ async def test_a_daemon_with_a_viewer_and_no_input_yet_publishes_without_a_fault
     async with running(daemon):
         viewer = daemon.viewer
         assert viewer is not None
-        await until(lambda: viewer.published > 0 and viewer.counters()["queued"] == 0)
+        await until(lambda: viewer.published > 0 and viewer.counters()["queued"] == 0, "the viewer publishing")
         await asyncio.sleep(0.3)  # several pose periods with no input at all
         assert silent.published == 0
         assert viewer.counters()["state"] == "running"
