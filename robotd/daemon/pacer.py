@@ -37,8 +37,11 @@ class ControlPacer:
         loop = asyncio.get_running_loop()
         if at_rest:
             self._command.clear()
+            # asyncio.timeout, not wait_for: Python 3.11's wait_for drops a cancellation that arrives as the event is
+            # set (a command at shutdown), and the daemon's TaskGroup would then wait for this loop forever
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._command.wait(), self.rest_period_s)
+                async with asyncio.timeout(self.rest_period_s):
+                    await self._command.wait()
             self.rest_wakeups += 1
             self._deadline = None  # back on the grid from the next period
             return

@@ -158,8 +158,9 @@ class FleetLink:
 
     async def _status_sampler(self) -> None:
         while True:
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._status_due.wait(), self.config.status_period_s)
+            with contextlib.suppress(TimeoutError):  # asyncio.timeout: 3.11's wait_for can drop a cancellation
+                async with asyncio.timeout(self.config.status_period_s):
+                    await self._status_due.wait()
             self._status_due.clear()
             self._offer_status()
 

@@ -282,8 +282,9 @@ async def run_virtual_hardware(
                 hardware.records.clear()
                 recorder.flush()
             next_step = max(next_step + STEP_S, now)
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), timeout=max(0.0, next_step - clock()))
+            with contextlib.suppress(TimeoutError):  # asyncio.timeout: 3.11's wait_for can drop a cancellation
+                async with asyncio.timeout(max(0.0, next_step - clock())):
+                    await stop.wait()
     finally:
         for signum in handled:
             loop.remove_signal_handler(signum)

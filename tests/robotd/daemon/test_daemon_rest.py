@@ -10,6 +10,7 @@ import asyncio
 import time
 from pathlib import Path
 
+import pytest
 from inprocess_daemon import FakeEncoders, FakeMotors, daemon_config, running, until
 
 from robotd.daemon.pacer import REST_BUMPS_PER_TIMEOUT, ControlPacer
@@ -54,3 +55,24 @@ async def test_at_rest_the_loops_hardly_wake_and_a_command_wakes_the_control_loo
         assert daemon.pacer.rest_wakeups <= wakeups + 1
         ticks = daemon.control_periods.summary()["ticks"]
         assert ticks > 10, ticks
+
+
+@pytest.mark.parametrize("steps_between", [0, 1, 2, 3])
+async def test_a_loop_at_rest_cancelled_as_a_command_arrives_ends(steps_between: int) -> None:
+    """A command and the shutdown at the same moment: the cancellation must not be lost (the daemon's TaskGroup
+    would wait for the control loop forever)."""
+    pacer = ControlPacer(period_s=0.02, deadman_timeout_s=0.5)
+
+    async def control_loop() -> None:
+        while True:
+            await pacer.next_step(at_rest=True)
+
+    loop = asyncio.create_task(control_loop())
+    await asyncio.sleep(0)  # the loop waits for a command
+    pacer.command_arrived()
+    for _ in range(steps_between):
+        await asyncio.sleep(0)
+    loop.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        async with asyncio.timeout(5.0):  # a lost cancellation: the loop runs on and this times out instead
+            await loop

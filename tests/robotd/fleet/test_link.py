@@ -152,8 +152,17 @@ async def test_the_link_reconnects_after_the_broker_was_away_and_the_control_loo
         original_tick(now)
 
     periods.tick = recorded_tick  # type: ignore[method-assign]
+
+    async def operator() -> None:
+        """Teleop held throughout, so the control loop steps every period (at rest it hardly wakes)."""
+        while True:
+            robot.command(0.05)
+            await asyncio.sleep(0.1)
+
     async with fleet_daemons([robot]):
         await until(lambda: robot.fleet.connected, "connected")
+        driving = asyncio.create_task(operator())
+        await asyncio.sleep(0.2)
         outage_from = len(ticks)
         await asyncio.to_thread(broker.stop)
         await until(lambda: not robot.fleet.connected, "the loss seen")
@@ -162,6 +171,7 @@ async def test_the_link_reconnects_after_the_broker_was_away_and_the_control_loo
         await asyncio.to_thread(broker.start)
         await until(lambda: robot.fleet.connected and robot.fleet.counts["connects"] == 2, "reconnected", 20.0)
         outage = ticks[outage_from:]
+        driving.cancel()
     assert robot.fleet.counts["connection_losses"] == 1
     assert len(outage) > 30  # the control loop ran throughout (50 Hz over well over a second)
     worst = max(b - a for a, b in itertools.pairwise(outage))
