@@ -34,7 +34,10 @@ def pi(server: VirtualPigpiod) -> Iterator[Any]:
     client = pigpio.pi("127.0.0.1", server.port, show_errors=False)
     assert client.connected
     yield client
+    notifications = client._notify  # pigpio's stop() does not wait for its notification thread to see the close
     client.stop()
+    if notifications is not None:
+        notifications.join(5.0)  # before the server goes: its close would reset the socket under the thread's recv
 
 
 @pytest.fixture
