@@ -119,7 +119,9 @@ def _unavailable(what: str, chip: str, offsets: Sequence[int], error: OSError) -
         hint = "permission denied: add the service user to the gpio group"
     else:
         hint = error.strerror or str(error)
-    return GpioUnavailableError(f"cannot request {what} {list(offsets)} on {chip}: {hint}")
+    unavailable = GpioUnavailableError(f"cannot request {what} {list(offsets)} on {chip}: {hint}")
+    unavailable.errno = error.errno  # the kernel's reason, for a caller that waits for busy lines
+    return unavailable
 
 
 class _GpiodEventLines:
