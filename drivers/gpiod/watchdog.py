@@ -224,6 +224,7 @@ def main(argv: Sequence[str]) -> int:
     sys.stdout.buffer.write(READY)
     sys.stdout.flush()
     stdin = sys.stdin.fileno()
+    said: str | None = None  # the last note on the direction pins: said once, not at every trip
     while True:
         readable, _, _ = select.select([stdin], [], [], monitor.wait_s(time.monotonic()))
         if readable:
@@ -234,7 +235,8 @@ def main(argv: Sequence[str]) -> int:
         if monitor.expired(time.monotonic()):
             problems = zero_pwm_duties(args.chip, args.channels)
             note = lower_direction_pins(directions, args.gpio_chip) if directions else None
-            _say([*problems, *([note] if note else [])])
+            _say([*problems, *([note] if note and note != said else [])])
+            said = note
             _report(f"trip {monitor.trips}")
     problems = stop_pwm_channels(args.chip, args.channels)
     if directions and not monitor.closing:

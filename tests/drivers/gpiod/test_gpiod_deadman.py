@@ -27,6 +27,7 @@ from drivers.gpiod.watchdog import lower_direction_pins
 from drivers.pigpiod.deadman import DeadmanLostError
 from drivers.virtual.output_lines import VirtualOutputLines
 from drivers.virtual.pwm_sysfs import VirtualPwmSysfs
+from robotd.bench import BENCHMARK_ADDITIONS, gpiod_deadman
 
 REPO = Path(__file__).resolve().parents[3]
 BOUND_S = 20.0
@@ -215,3 +216,10 @@ def test_direction_pins_are_lowered_when_free_waited_for_while_a_dying_owner_hol
 
     note = lower_direction_pins([16, 20], None, open_outputs=chip.open, wait_s=BOUND_S, sleep=owner_exits)
     assert (note, chip.level(16), chip.level(20), chip.held) == (None, 0, 0, set())
+
+
+def test_robotd_bench_daemon_measures_the_gpiod_deadman(capsys: pytest.CaptureFixture[str]) -> None:
+    figures = gpiod_deadman.run(quick=True)
+    assert "robotd.bench.gpiod_deadman" in BENCHMARK_ADDITIONS["daemon"]  # `robotd bench daemon` runs it
+    assert 0 < figures["gpiod_deadman_stop_p50_s"] <= figures["gpiod_deadman_stop_max_s"] < gpiod_deadman.GIVE_UP_S
+    assert "enables off" in capsys.readouterr().out
