@@ -8,6 +8,8 @@ recording output lines. Teleop arrives over real UDP on loopback.
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -16,6 +18,7 @@ import pytest
 from gpiod_support import drive_turns
 from inprocess_daemon import daemon_config, running, until
 
+from drivers.gpiod.motors import GpiodMotors
 from drivers.gpiod.pwm import RP1_PWM_CHANNELS
 from drivers.settings import in_wheel_order
 from drivers.virtual.event_pipe import VirtualEventLines
@@ -160,3 +163,20 @@ async def test_a_hung_loop_has_its_pwm_zeroed_by_the_watchdog_and_drives_again_o
     link.sock.close()
     assert pi5.outputs() == [(0.0, 0, 0)] * 4
     assert pi5.sysfs.exported() == []
+
+
+async def test_a_killed_watchdog_is_a_lost_deadman_and_the_motors_come_back_with_a_new_one(pi5: Pi5) -> None:
+    config = replace(pi5.config, gpio=replace(pi5.config.gpio, pwm_watchdog=True))
+    daemon = Daemon(config, hardware=build_hardware(config, time.monotonic, gpiod_io=pi5.io))
+    async with running(daemon):
+        await until(lambda: daemon.deadman.current is not None, "the motors and their deadman")
+        first = daemon.motors
+        assert isinstance(first, GpiodMotors)
+        assert first.watchdog is not None
+        os.kill(first.watchdog.pid, signal.SIGKILL)
+        await until(lambda: daemon.motors is not None and daemon.motors is not first, "the motors reconnected")
+        assert daemon.deadman.current is not None
+        again = daemon.motors
+        assert isinstance(again, GpiodMotors)
+        assert again.watchdog is not None
+        assert again.watchdog.exit_status() is None  # a new watchdog guards them
