@@ -78,6 +78,9 @@ class OutputLines(Protocol):
 
 EventLinesOpener = Callable[[Sequence[int], EventLineSettings], EventLines]
 OutputLinesOpener = Callable[[Sequence[int], str | None], OutputLines]
+LineHolders = dict[int, str | None]
+LineHoldersReader = Callable[[Sequence[int], str | None], tuple[str, LineHolders]]
+"""(the chip's path, each line's consumer: the name its holder gave, '' for a nameless one, None when it is free)."""
 
 
 def _require_gpiod() -> None:
@@ -200,3 +203,17 @@ def open_output_lines(offsets: Sequence[int], chip: str | None = None) -> Output
     except OSError as error:
         raise _unavailable("motor direction lines", path, offsets, error) from error
     return _GpiodOutputLines(request)
+
+
+def read_line_holders(offsets: Sequence[int], chip: str | None = None) -> tuple[str, LineHolders]:
+    """The chip's path and who holds each of `offsets` (the kernel's line info; nothing is requested)."""
+    _require_gpiod()
+    import gpiod  # noqa: PLC0415
+
+    path = chip or find_gpio_chip()
+    try:
+        with gpiod.Chip(path) as opened:
+            infos = {offset: opened.get_line_info(offset) for offset in offsets}
+    except OSError as error:
+        raise _unavailable("the line info of", path, offsets, error) from error
+    return path, {offset: (info.consumer or "") if info.used else None for offset, info in infos.items()}

@@ -149,6 +149,9 @@ class VirtualPwmSysfs:
     def output(self, channel: int) -> float:
         """What the channel's pin carries: duty / period while enabled, else 0 (also when not exported)."""
         channel_dir = self.chip / f"pwm{channel}"
-        if not channel_dir.is_dir() or self.read(channel_dir / "enable") != "1":
+        try:
+            if self.read(channel_dir / "enable") != "1":
+                return 0.0
+            return int(self.read(channel_dir / "duty_cycle")) / int(self.read(channel_dir / "period"))
+        except FileNotFoundError:  # not exported, or being exported or unexported by another thread right now
             return 0.0
-        return int(self.read(channel_dir / "duty_cycle")) / int(self.read(channel_dir / "period"))

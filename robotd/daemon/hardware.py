@@ -24,9 +24,11 @@ from drivers.gpiod.lines import (
     EventLineSettings,
     EventLinesOpener,
     GpioUnavailableError,
+    LineHoldersReader,
     OutputLinesOpener,
     open_event_lines,
     open_output_lines,
+    read_line_holders,
 )
 from drivers.gpiod.motors import GpiodMotors
 from drivers.gpiod.pwm import SYSFS, Attributes, find_pwm_chip
@@ -45,6 +47,7 @@ class GpiodIo:
     open_event_lines: EventLinesOpener = open_event_lines
     open_output_lines: OutputLinesOpener = open_output_lines
     pwm_attributes: Attributes = SYSFS
+    read_line_holders: LineHoldersReader = read_line_holders
 
 
 @dataclass(frozen=True, slots=True)
