@@ -83,6 +83,30 @@ LineHoldersReader = Callable[[Sequence[int], str | None], tuple[str, LineHolders
 """(the chip's path, each line's consumer: the name its holder gave, '' for a nameless one, None when it is free)."""
 
 
+GPIOD_MINIMUM = (2, 2)
+"""The oldest `gpiod` Python package with the libgpiod v2 API robotd uses (Debian Trixie's python3-libgpiod)."""
+
+
+def gpiod_version() -> str | None:
+    """The version of the importable `gpiod` package, None when there is none (a failing import counts as none)."""
+    try:
+        import gpiod  # noqa: PLC0415 - needed only on a Pi 5
+    except ImportError:
+        return None
+    return str(getattr(gpiod, "__version__", "0"))
+
+
+def gpiod_new_enough(version: str | None) -> bool:
+    """Whether a `gpiod` version is at least GPIOD_MINIMUM (Bookworm's 1.6 is the old v1 API)."""
+    if version is None:
+        return False
+    parts = []
+    for part in version.split(".")[:2]:
+        digits = "".join(c for c in part if c.isdigit()) if part[:1].isdigit() else ""
+        parts.append(int(digits) if digits else 0)
+    return tuple(parts) >= GPIOD_MINIMUM
+
+
 def _require_gpiod() -> None:
     """Raise GpioUnavailableError, with the fix, when the `gpiod` package is not installed."""
     if importlib.util.find_spec("gpiod") is None:
