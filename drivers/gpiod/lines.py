@@ -78,6 +78,33 @@ class OutputLines(Protocol):
 
 EventLinesOpener = Callable[[Sequence[int], EventLineSettings], EventLines]
 OutputLinesOpener = Callable[[Sequence[int], str | None], OutputLines]
+LineHolders = dict[int, str | None]
+LineHoldersReader = Callable[[Sequence[int], str | None], tuple[str, LineHolders]]
+"""(the chip's path, each line's consumer: the name its holder gave, '' for a nameless one, None when it is free)."""
+
+
+GPIOD_MINIMUM = (2, 2)
+"""The oldest `gpiod` Python package with the libgpiod v2 API robotd uses (Debian Trixie's python3-libgpiod)."""
+
+
+def gpiod_version() -> str | None:
+    """The version of the importable `gpiod` package, None when there is none (a failing import counts as none)."""
+    try:
+        import gpiod  # noqa: PLC0415 - needed only on a Pi 5
+    except ImportError:
+        return None
+    return str(getattr(gpiod, "__version__", "0"))
+
+
+def gpiod_new_enough(version: str | None) -> bool:
+    """Whether a `gpiod` version is at least GPIOD_MINIMUM (Bookworm's 1.6 is the old v1 API)."""
+    if version is None:
+        return False
+    parts = []
+    for part in version.split(".")[:2]:
+        digits = "".join(c for c in part if c.isdigit()) if part[:1].isdigit() else ""
+        parts.append(int(digits) if digits else 0)
+    return tuple(parts) >= GPIOD_MINIMUM
 
 
 def _require_gpiod() -> None:
@@ -119,7 +146,9 @@ def _unavailable(what: str, chip: str, offsets: Sequence[int], error: OSError) -
         hint = "permission denied: add the service user to the gpio group"
     else:
         hint = error.strerror or str(error)
-    return GpioUnavailableError(f"cannot request {what} {list(offsets)} on {chip}: {hint}")
+    unavailable = GpioUnavailableError(f"cannot request {what} {list(offsets)} on {chip}: {hint}")
+    unavailable.errno = error.errno  # the kernel's reason, for a caller that waits for busy lines
+    return unavailable
 
 
 class _GpiodEventLines:
@@ -198,3 +227,17 @@ def open_output_lines(offsets: Sequence[int], chip: str | None = None) -> Output
     except OSError as error:
         raise _unavailable("motor direction lines", path, offsets, error) from error
     return _GpiodOutputLines(request)
+
+
+def read_line_holders(offsets: Sequence[int], chip: str | None = None) -> tuple[str, LineHolders]:
+    """The chip's path and who holds each of `offsets` (the kernel's line info; nothing is requested)."""
+    _require_gpiod()
+    import gpiod  # noqa: PLC0415
+
+    path = chip or find_gpio_chip()
+    try:
+        with gpiod.Chip(path) as opened:
+            infos = {offset: opened.get_line_info(offset) for offset in offsets}
+    except OSError as error:
+        raise _unavailable("the line info of", path, offsets, error) from error
+    return path, {offset: (info.consumer or "") if info.used else None for offset, info in infos.items()}

@@ -9,8 +9,9 @@ out in one `set_values` call, then the new duties.
 
 Every path out zeroes the motors: `GpiodMotors` starts at zero; `close()` and leaving its `with` block zero them,
 disable and unexport the channels; a failing `set_duties` zeroes before it raises. Because sysfs PWM outlives its
-process, a watchdog process (drivers.gpiod.watchdog) stops the channels when this process dies without closing, and
-`stop_gpiod_motors` does the same from `robotd stop-motors` (systemd's ExecStopPost).
+process, a watchdog process (drivers.gpiod.watchdog) stops the channels when this process dies without closing, and,
+given `heartbeat_timeout_s`, when its heartbeats stop (drivers.gpiod.deadman bumps it); `stop_gpiod_motors` does the
+same from `robotd stop-motors` (systemd's ExecStopPost).
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ class GpiodMotors:
         open_outputs: OutputLinesOpener = open_output_lines,
         gpio_chip: str | None = None,
         watchdog: bool = True,
+        heartbeat_timeout_s: float | None = None,
     ) -> None:
         if len(wheels) != 4:
             raise ValueError(f"four motors (FL, FR, RL, RR) are needed, got {len(wheels)}")
@@ -79,10 +81,21 @@ class GpiodMotors:
                 self._wheels.append(_Wheel(wiring, pwm))
                 pwm.open(frequency_hz)
             if watchdog:
-                self._watchdog = PwmWatchdog(chip, channels)
+                self._watchdog = PwmWatchdog(
+                    chip,
+                    channels,
+                    timeout_s=heartbeat_timeout_s,
+                    direction_pins=[line for w in wheels for line in (w.in1, w.in2)],
+                    gpio_chip=gpio_chip,
+                )
         except BaseException:
             self.close()
             raise
+
+    @property
+    def watchdog(self) -> PwmWatchdog | None:
+        """The watchdog process guarding these motors (a deadman when `heartbeat_timeout_s` was given), or None."""
+        return self._watchdog
 
     def set_duties(self, duties: Duties) -> None:
         """Apply one duty per wheel in [-1, 1]; a failure zeroes every motor before it propagates."""

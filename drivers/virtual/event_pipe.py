@@ -107,6 +107,12 @@ class VirtualEventLines:
             self._open = request
             return request
 
+    @property
+    def requested(self) -> list[int]:
+        """The lines of the open request ([] while none is open)."""
+        request = self._open
+        return list(request.offsets) if request is not None else []
+
     def _forget(self, request: _PipeRequest) -> None:
         with self._lock:
             if self._open is request:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import errno
 import os
 import shutil
+import time
 from pathlib import Path
 
 DEVICES = Path("devices/platform/axi/1000120000.pcie")
@@ -49,6 +50,15 @@ class VirtualPwmSysfs:
         """The RP1 PWM0 chip as the driver should find it: class_root/pwmchipN."""
         self._add_chip(RP1_PWM1, 0)
 
+    @classmethod
+    def existing(cls, root: Path, *, chip_number: int = 2) -> VirtualPwmSysfs:
+        """A view of the directory another process's stand-in laid out at `root` (nothing created or changed)."""
+        view = cls.__new__(cls)
+        view.root, view.class_root = root, root / "class" / "pwm"
+        view.journal, view.settle_writes, view._refusals = [], 0, {}
+        view.chip = view.class_root / f"pwmchip{chip_number}"
+        return view
+
     def _add_chip(self, device: str, number: int) -> Path:
         target = self.root / DEVICES / device / "pwm" / f"pwmchip{number}"
         target.mkdir(parents=True, exist_ok=True)
@@ -61,8 +71,13 @@ class VirtualPwmSysfs:
     # --- Attributes --------------------------------------------------------------------------------------------
 
     def read(self, path: Path) -> str:
-        """The attribute's value, stripped."""
-        return path.read_text(encoding="ascii").strip()
+        """The attribute's value, stripped (read again while another process's write has emptied the file)."""
+        for _ in range(1000):
+            value = path.read_text(encoding="ascii").strip()
+            if value or path.name in ("export", "unexport"):
+                return value
+            time.sleep(0.001)  # a plain file is truncated before it is written: sysfs never shows that moment
+        return value
 
     def write(self, path: Path, value: str) -> None:
         """Apply a write as the kernel would; OSError with the kernel's errno when it would refuse."""
@@ -134,6 +149,9 @@ class VirtualPwmSysfs:
     def output(self, channel: int) -> float:
         """What the channel's pin carries: duty / period while enabled, else 0 (also when not exported)."""
         channel_dir = self.chip / f"pwm{channel}"
-        if not channel_dir.is_dir() or self.read(channel_dir / "enable") != "1":
+        try:
+            if self.read(channel_dir / "enable") != "1":
+                return 0.0
+            return int(self.read(channel_dir / "duty_cycle")) / int(self.read(channel_dir / "period"))
+        except FileNotFoundError:  # not exported, or being exported or unexported by another thread right now
             return 0.0
-        return int(self.read(channel_dir / "duty_cycle")) / int(self.read(channel_dir / "period"))

@@ -16,6 +16,7 @@ BENCHMARK_MODULES: tuple[str, ...] = (
 
 BENCHMARK_ADDITIONS: dict[str, tuple[str, ...]] = {
     "encoders": ("robotd.bench.gpiod",),
+    "daemon": ("robotd.bench.gpiod_deadman",),
 }
 """Modules whose `run(quick)` adds figures to the benchmark named by the key: run right after it, their lines printed
 and their figures reported under its name (so `robotd bench encoders` shows both GPIO back-ends)."""

@@ -41,7 +41,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     doctor.add_argument(
         "--beacon-seconds", type=float, default=3.0, metavar="S", help="how long to listen to the beacon (default 3)"
     )
-    doctor.add_argument("--backend", default="pigpio", choices=BACKEND_NAMES, help="GPIO back-end (default pigpio)")
+    doctor.add_argument(
+        "--backend", choices=BACKEND_NAMES, help="GPIO back-end (default: the configuration's gpio.backend)"
+    )
     doctor.set_defaults(handler=run_doctor)
 
 
@@ -107,9 +109,11 @@ def run_doctor(args: argparse.Namespace) -> int:
     return exit_status(findings)
 
 
-def _stop_motors(config_path: str, backend_name: str) -> None:
+def _stop_motors(config_path: str, backend_name: str | None) -> None:
     """The last word after a spin, whatever happened (Ctrl-C, SIGTERM): every motor off through the back-end."""
+    from robotd.config.gpio import resolve_backend  # noqa: PLC0415
     from robotd.tools.gpio_backend import BackendUnavailableError, backends  # noqa: PLC0415
 
     with contextlib.suppress(ConfigError, BackendUnavailableError):  # then nothing was spun
-        backends()[backend_name].open_drive(load(config_path)).close()
+        config = load(config_path)
+        backends()[backend_name or resolve_backend(config.gpio)].open_drive(config).close()

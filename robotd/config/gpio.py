@@ -60,7 +60,8 @@ class GpioConfig:
     pwm_watchdog: bool = setting(
         True,
         "gpiod: run a small watchdog process that stops the PWM when robotd dies without closing (sysfs PWM keeps"
-        " running after its process otherwise).",
+        " running after its process otherwise) and, with motors.deadman_script, when robotd stops refreshing it for"
+        " teleop.deadman_timeout_s (stopped or hung): the deadman of the gpiod back-end.",
     )
 
 

@@ -1,5 +1,6 @@
-"""The daemon's side of the deadman in pigpiod (drivers.pigpiod.deadman): one at a time, installed with the motors,
-bumped by the control loop, followed for trips and loss, removed on a clean exit.
+"""The daemon's side of the deadman in pigpiod (drivers.pigpiod.deadman; on the gpiod back-end the motors' watchdog
+process, drivers.gpiod.deadman): one at a time, installed with the motors, bumped by the control loop, followed for
+trips and loss, removed on a clean exit.
 
 A keeper without a factory (motors injected by a test, or `motors.deadman_script: false`) does nothing.
 """

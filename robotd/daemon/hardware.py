@@ -6,9 +6,9 @@ event loop). The stop paths differ by back-end:
 - pigpio: pigpiod keeps driving after its client dies, so a deadman script inside pigpiod (drivers.pigpiod.deadman)
   stops the motors when the control loop stops bumping it (killed, stopped or hung), if `motors.deadman_script`.
 - gpiod: sysfs PWM keeps running after its process dies, so a watchdog process started with the motors
-  (drivers.gpiod.watchdog) stops the PWM when robotd dies, if `gpio.pwm_watchdog`. It does not cover a robotd that
-  is stopped or hung but alive; systemd's watchdog (WatchdogSec) kills such a robotd, and the watchdog process then
-  stops the PWM.
+  (drivers.gpiod.watchdog) stops the PWM when robotd dies, if `gpio.pwm_watchdog`; with `motors.deadman_script`
+  too it is also the deadman (drivers.gpiod.deadman): bumped by the control loop like pigpio's script, it zeroes
+  the PWM when robotd is stopped or hung.
 Both leave `robotd stop-motors` for systemd's ExecStopPost.
 """
 
@@ -18,13 +18,17 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from drivers.gpiod.deadman import GpiodDeadman
 from drivers.gpiod.encoders import GpiodEncoders
 from drivers.gpiod.lines import (
     EventLineSettings,
     EventLinesOpener,
+    GpioUnavailableError,
+    LineHoldersReader,
     OutputLinesOpener,
     open_event_lines,
     open_output_lines,
+    read_line_holders,
 )
 from drivers.gpiod.motors import GpiodMotors
 from drivers.gpiod.pwm import SYSFS, Attributes, find_pwm_chip
@@ -43,6 +47,7 @@ class GpiodIo:
     open_event_lines: EventLinesOpener = open_event_lines
     open_output_lines: OutputLinesOpener = open_output_lines
     pwm_attributes: Attributes = SYSFS
+    read_line_holders: LineHoldersReader = read_line_holders
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,14 +76,19 @@ def build_hardware(
     return _pigpio(config, clock)
 
 
+def deadman_timeout_s(config: RobotdConfig) -> float:
+    """How long a deadman waits for a heartbeat, either back-end: `teleop.deadman_timeout_s`, at least two periods
+    (a timeout the control loop's own jitter could reach would trip while robotd runs)."""
+    return max(config.teleop.deadman_timeout_s, 2.0 / config.control.rate_hz)
+
+
 def _pigpio(config: RobotdConfig, clock: Callable[[], float]) -> Hardware:
     pigpiod = config.pigpiod
 
     def install_deadman() -> Awaitable[Deadman]:
         period = 1.0 / config.control.rate_hz
         enables, directions = enable_and_direction_pins(config.motors)
-        # at least two periods: a timeout the control loop's own jitter could reach would trip while robotd runs
-        timeout = max(config.teleop.deadman_timeout_s, 2.0 * period)
+        timeout = deadman_timeout_s(config)
         return PigpioDeadman.install(
             pigpiod.host,
             pigpiod.port,
@@ -111,16 +121,30 @@ def _gpiod(config: RobotdConfig, clock: Callable[[], float], io: GpiodIo) -> Har
         clock=clock,
     )
 
-    def connect_motors() -> GpiodMotors:
-        return GpiodMotors(
-            wheel_pins(motors),
-            frequency_hz=motors.pwm_frequency_hz,
-            duty_limit=motors.duty_limit,
-            pwm_chip=find_pwm_chip(gpio.pwm_device, gpio.pwm_class_dir),
-            attributes=io.pwm_attributes,
-            open_outputs=io.open_output_lines,
-            gpio_chip=chip,
-            watchdog=gpio.pwm_watchdog,
-        )
+    heartbeat = gpio.pwm_watchdog and motors.deadman_script
+    connected: list[GpiodMotors] = []  # the motors connected last: their watchdog is the deadman installed next
 
-    return Hardware("gpiod", source, connect_motors, None)
+    def connect_motors() -> GpiodMotors:
+        connected.clear()
+        connected.append(
+            GpiodMotors(
+                wheel_pins(motors),
+                frequency_hz=motors.pwm_frequency_hz,
+                duty_limit=motors.duty_limit,
+                pwm_chip=find_pwm_chip(gpio.pwm_device, gpio.pwm_class_dir),
+                attributes=io.pwm_attributes,
+                open_outputs=io.open_output_lines,
+                gpio_chip=chip,
+                watchdog=gpio.pwm_watchdog,
+                heartbeat_timeout_s=deadman_timeout_s(config) if heartbeat else None,
+            )
+        )
+        return connected[0]
+
+    async def install_deadman() -> Deadman:
+        watchdog = connected[0].watchdog if connected else None
+        if watchdog is None:
+            raise GpioUnavailableError("no PWM watchdog runs for the motors: connect them before the deadman")
+        return GpiodDeadman(watchdog)
+
+    return Hardware("gpiod", source, connect_motors, install_deadman if heartbeat else None)

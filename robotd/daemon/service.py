@@ -400,7 +400,7 @@ class Daemon:
 
     def _on_deadman_trip(self, trips: int) -> None:
         log.warning(
-            "the pigpiod deadman stopped the motors (robotd was stalled; %d time(s) so far): waiting for a fresh "
+            "the deadman stopped the motors (robotd was stalled; %d time(s) so far): waiting for a fresh "
             "command", trips
         )  # fmt: skip
         self._zero_motors()  # the pins were written behind the motor outputs' back: write them all again

@@ -1,9 +1,10 @@
 """`robotd doctor`: the checklist a person runs on a freshly wired robot, each line PASS, FAIL with the fix, or SKIP
 with the reason.
 
-Order: the configuration, the GPIO back-end, the pins, the beacon, the teleop key, the service, the clock, and with
---spin each wheel (robotd.tools.doctor_spin). A check that needs what an earlier one found missing is skipped and
-says so. The findings are printed as they come: a person watches the robot while it runs.
+Order: the configuration, the GPIO back-end (the configuration's, unless named), the pins, the beacon, the teleop
+key, the service, the clock, and with --spin each wheel (robotd.tools.doctor_spin). A check that needs what an
+earlier one found missing is skipped and says so. The findings are printed as they come: a person watches the
+robot while it runs.
 """
 
 from __future__ import annotations
@@ -13,12 +14,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from robotd.config.gpio import resolve_backend
 from robotd.config.model import RobotdConfig, load
 from robotd.config.schema import ConfigError
 from robotd.tools.checklist import Finding, failed, passed, skipped
 from robotd.tools.doctor_beacon import BeaconSample, beacon_findings, find_device, listen_daemon, listen_serial
 from robotd.tools.doctor_host import clock_finding, key_finding, unit_finding
-from robotd.tools.doctor_pins import pin_findings, pins_in_use
+from robotd.tools.doctor_pins import holder_findings, pin_findings, pins_in_use
 from robotd.tools.doctor_spin import Ask, SpinPlan, diagnose, spin_wheels
 from robotd.tools.gpio_backend import BackendUnavailableError, GpioBackend, backends
 from robotd.tools.install_steps import Runner, run_command
@@ -29,7 +31,7 @@ class DoctorOptions:
     """What to check and how."""
 
     config_path: str
-    backend: str = "pigpio"
+    backend: str | None = None  # None: the configuration's gpio.backend (auto: by the board)
     beacon_s: float = 3.0  # how long to listen to the beacon
     spin: SpinPlan | None = None  # None: leave the wheels alone
     ask: Ask | None = None  # asks the person which way each wheel turned; None: nobody watches
@@ -68,7 +70,7 @@ async def examine(options: DoctorOptions, host: Host, report: Report, note: Call
         )
         return findings
     add(passed("configuration", f"{options.config_path} is valid"))
-    backend = host.backends[options.backend]
+    backend = host.backends[options.backend or resolve_backend(config.gpio)]
     try:
         add(passed("GPIO back-end", f"{backend.name}: {await asyncio.to_thread(backend.reach, config)}"))
         reachable = True
@@ -90,14 +92,22 @@ async def examine(options: DoctorOptions, host: Host, report: Report, note: Call
 
 
 async def _pins(config: RobotdConfig, backend: GpioBackend, host: Host, reachable: bool) -> list[Finding]:
-    modes = None
-    if reachable:
-        pins = [pin for _, pin in pins_in_use(config)]
+    modes, unknown = None, "the GPIO back-end is not reachable, so the pins' present functions are unknown"
+    pins = [pin for _, pin in pins_in_use(config)]
+    if reachable and backend.pin_modes is None:
+        unknown = f"the {backend.name} back-end cannot read pin functions (pinctrl get {','.join(map(str, pins))} can)"
+    elif reachable and backend.pin_modes is not None:
         try:
             modes = await asyncio.to_thread(backend.pin_modes, config, pins)
         except BackendUnavailableError:
             modes = None
-    return pin_findings(config, modes, host.dev, backend.pwm_pins)
+    found = pin_findings(config, modes, host.dev, backend.pwm_pins, unknown=unknown)
+    if reachable and backend.pin_holders is not None:
+        try:
+            found += holder_findings(config, await asyncio.to_thread(backend.pin_holders, config, pins))
+        except BackendUnavailableError as error:
+            found.append(failed("pins free", error.detail, error.fix))
+    return found
 
 
 async def _listen(config: RobotdConfig, seconds: float) -> tuple[bool, BeaconSample | str]:

@@ -41,9 +41,14 @@ def pins_in_use(config: RobotdConfig) -> list[tuple[str, int]]:
 
 
 def pin_findings(
-    config: RobotdConfig, modes: dict[int, str] | None, dev: Path, pwm_pins: frozenset[int] | None
+    config: RobotdConfig,
+    modes: dict[int, str] | None,
+    dev: Path,
+    pwm_pins: frozenset[int] | None,
+    *,
+    unknown: str = "the GPIO back-end is not reachable, so the pins' present functions are unknown",
 ) -> list[Finding]:
-    """The pin checks; `modes` (from the back-end) is None when it could not be read."""
+    """The pin checks; `modes` (from the back-end) is None when it could not be read (`unknown` says why)."""
     used = pins_in_use(config)
     found: list[Finding] = []
     for path, pin in used:
@@ -72,6 +77,35 @@ def pin_findings(
     if modes is None:
         return [
             passed("pins", f"{names}; no motor enable pulled high at boot; no bus enabled"),
-            skipped("pin functions", "the GPIO back-end is not reachable, so the pins' present functions are unknown"),
+            skipped("pin functions", unknown),
         ]
     return [passed("pins", f"{names}; no motor enable pulled high at boot; none held by I2C, SPI or the UART")]
+
+
+OWN_CONSUMERS = ("robotd-encoders", "robotd-motors")
+"""The names robotd's line requests give: a running robotd holds its own pins."""
+
+
+def holder_findings(config: RobotdConfig, holders: dict[int, str | None]) -> list[Finding]:
+    """Each configured pin free, or held by the running robotd; one failure per pin another program holds."""
+    found: list[Finding] = []
+    ours = []
+    for path, pin in pins_in_use(config):
+        holder = holders.get(pin)
+        if holder is None:
+            continue
+        if holder in OWN_CONSUMERS:
+            ours.append(pin)
+            continue
+        found.append(
+            failed(
+                "pins free",
+                f"{path} is GPIO {pin}, held by {holder or 'a program that gave no name'}",
+                f"stop that program (gpioinfo shows who holds each line), or move the wire and set {path}",
+            )
+        )
+    if found:
+        return found
+    if ours:
+        return [passed("pins free", f"no other program holds them; robotd holds {len(ours)} (it is running)")]
+    return [passed("pins free", f"none of the {len(holders)} lines is held by another program")]

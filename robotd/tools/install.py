@@ -12,10 +12,12 @@ from __future__ import annotations
 import base64
 import secrets
 import shutil
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from drivers.gpiod.lines import GPIOD_MINIMUM, gpiod_new_enough, gpiod_version
 from robotd.config.model import parse
 from robotd.config.schema import ConfigError
 from robotd.daemon.teleop import load_key
@@ -130,7 +132,23 @@ def _preconditions(board: Board) -> list[Step]:
                 "pigpiod is not installed: sudo apt install pigpio (Raspberry Pi OS 12 Bookworm or earlier)",
             )
         )
+    else:
+        steps.append(gpiod_requirement())
     return steps
+
+
+def gpiod_requirement() -> Require:
+    """The gpiod back-end's Python package, importable by the robotd that installs (and will run) the service."""
+    found = gpiod_version()
+    usable = gpiod_new_enough(found)
+    have = f"gpiod {found} is too old (the v1 API)" if found else "the Python package gpiod is not importable"
+    return Require(
+        f"gpiod {found} importable (>= {'.'.join(map(str, GPIOD_MINIMUM))})",
+        lambda _target: usable,
+        f"{have} by {sys.executable}: {sys.executable} -m pip install 'robotd[pi5]' (from the checkout) or"
+        " pip install 'gpiod>=2.2' (wheels on PyPI); Debian's python3-libgpiod (2.2 on Raspberry Pi OS 13) serves a"
+        " venv made with --system-site-packages",
+    )
 
 
 def _source_text(source: Path, relative: str) -> str:

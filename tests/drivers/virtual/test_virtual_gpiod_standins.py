@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import math
 import os
 import struct
 from pathlib import Path
@@ -14,6 +15,7 @@ from drivers.gpiod.lines import EventLineSettings
 from drivers.gpiod.pwm import SysfsAttributes, find_pwm_chip
 from drivers.virtual.event_pipe import VirtualEventLines
 from drivers.virtual.output_lines import VirtualOutputLines
+from drivers.virtual.pi5_wheels import VirtualPi5Wheels, WheelWiring
 from drivers.virtual.pwm_sysfs import VirtualPwmSysfs
 
 RECORD = struct.Struct("=QIIII24x")  # struct gpio_v2_line_event, as linux/gpio.h declares it
@@ -129,3 +131,27 @@ def test_output_lines_record_each_call_as_one_write_and_refuse_held_lines() -> N
     request.release()
     assert chip.journal == [{"gpio16": "0", "gpio20": "0"}, {"gpio16": "1", "gpio20": "0"}]
     assert chip.held == set()
+
+
+def test_the_wheels_behind_the_stand_ins_turn_pwm_and_direction_into_quadrature_edges(tmp_path: Path) -> None:
+    sysfs, lines, edges = VirtualPwmSysfs(tmp_path), VirtualOutputLines(), VirtualEventLines()
+    wheel = WheelWiring(enable=12, in1=16, in2=20, a=4, b=17)
+    wheels = VirtualPi5Wheels(
+        [wheel], sysfs=sysfs, outputs=lines, edges=edges, counts_per_rev=6800, max_speed_rad_s=20.0
+    )
+    request = edges.open([4, 17], EventLineSettings())
+    for name, value in (("export", "0"), ("pwm0/period", "1000000"), ("pwm0/duty_cycle", "250000")):
+        sysfs.write(sysfs.chip / name, value)
+    sysfs.write(sysfs.chip / "pwm0" / "enable", "1")
+    outputs = lines.open([16, 20])
+    outputs.set_values({16: 0, 20: 1})  # backward at duty 0.25: 5 rad/s
+    wheels.step(1_000_000_000)
+    wheels.step(1_200_000_000)  # 0.2 s: one rad, 6800 / 2 pi counts backward
+    records = read_records(request.fd)
+    position = math.floor(-6800 / (2 * math.pi))  # the count at -1 rad: floor, as the virtual robot counts
+    assert len(records) == -position
+    assert {offset for _, _, offset, _, _ in records} == {4, 17}
+    assert all(1_000_000_000 < stamp <= 1_200_000_000 for stamp, *_ in records)
+    assert wheels.angles == [pytest.approx(-1.0)]
+    a_level, b_level = (edges.levels >> 4) & 1, (edges.levels >> 17) & 1
+    assert ((a_level << 1) | b_level) == [0, 2, 3, 1][position % 4]

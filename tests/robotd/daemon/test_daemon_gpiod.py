@@ -8,14 +8,17 @@ recording output lines. Teleop arrives over real UDP on loopback.
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import pytest
 from gpiod_support import drive_turns
 from inprocess_daemon import daemon_config, running, until
 
+from drivers.gpiod.motors import GpiodMotors
 from drivers.gpiod.pwm import RP1_PWM_CHANNELS
 from drivers.settings import in_wheel_order
 from drivers.virtual.event_pipe import VirtualEventLines
@@ -113,3 +116,67 @@ async def test_the_daemon_drives_and_counts_on_the_gpiod_back_end_and_stops_the_
     assert pi5.sysfs.exported() == []  # disabled and unexported
     assert pi5.lines.held == set()
     assert [request for request, _ in pi5.edges.requests] == [sorted(line for e in encoders for line in (e.a, e.b))]
+
+
+def test_with_the_pwm_watchdog_the_gpiod_back_end_has_a_heartbeat_deadman(pi5: Pi5) -> None:
+    config = replace(pi5.config, gpio=replace(pi5.config.gpio, pwm_watchdog=True))
+    assert build_hardware(config, time.monotonic, gpiod_io=pi5.io).deadman_factory is not None
+    off = replace(config, motors=replace(config.motors, deadman_script=False))
+    assert build_hardware(off, time.monotonic, gpiod_io=pi5.io).deadman_factory is None  # death guarded only
+
+
+async def test_a_hung_loop_has_its_pwm_zeroed_by_the_watchdog_and_drives_again_only_on_a_fresh_command(
+    pi5: Pi5, caplog: pytest.LogCaptureFixture
+) -> None:
+    config = replace(
+        pi5.config,
+        gpio=replace(pi5.config.gpio, pwm_watchdog=True),
+        teleop=replace(pi5.config.teleop, deadman_timeout_s=0.3),
+    )
+    daemon = Daemon(config, hardware=build_hardware(config, time.monotonic, gpiod_io=pi5.io))
+    link = UdpLink("127.0.0.1", config.teleop.port, None)
+
+    async def driving() -> bool:
+        link.send(Twist(0.2, 0.0, 0.0))
+        await asyncio.sleep(0.02)
+        return all(duty > 0 for duty, _, _ in pi5.outputs())
+
+    def hang_until_the_pwm_is_zero() -> None:  # the event loop blocked: no control period, no heartbeat
+        deadline = time.monotonic() + 20.0  # a generous functional bound, not a timing target
+        while any(duty for duty, _, _ in pi5.outputs()) and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    async with running(daemon):
+        await until(lambda: daemon.deadman.current is not None, "the motors and their deadman")
+        assert await asyncio.to_thread(link.sync, 5.0), "the daemon answered the teleop hello"
+        async with asyncio.timeout(10):
+            while not await driving():
+                pass
+        hang_until_the_pwm_is_zero()
+        assert [duty for duty, _, _ in pi5.outputs()] == [0.0] * 4, "the watchdog did not stop the hung daemon's PWM"
+        await until(lambda: "deadman stopped the motors" in caplog.text, "the daemon to hear of the trip")
+        await asyncio.sleep(0.2)  # ten periods on the old command: it must not drive again on it
+        assert [duty for duty, _, _ in pi5.outputs()] == [0.0] * 4
+        async with asyncio.timeout(10):
+            while not await driving():  # a fresh command drives, and the heartbeat re-arms the watchdog
+                pass
+    link.sock.close()
+    assert pi5.outputs() == [(0.0, 0, 0)] * 4
+    assert pi5.sysfs.exported() == []
+
+
+async def test_a_killed_watchdog_is_a_lost_deadman_and_the_motors_come_back_with_a_new_one(pi5: Pi5) -> None:
+    config = replace(pi5.config, gpio=replace(pi5.config.gpio, pwm_watchdog=True))
+    daemon = Daemon(config, hardware=build_hardware(config, time.monotonic, gpiod_io=pi5.io))
+    async with running(daemon):
+        await until(lambda: daemon.deadman.current is not None, "the motors and their deadman")
+        first = daemon.motors
+        assert isinstance(first, GpiodMotors)
+        assert first.watchdog is not None
+        os.kill(first.watchdog.pid, signal.SIGKILL)
+        await until(lambda: daemon.motors is not None and daemon.motors is not first, "the motors reconnected")
+        assert daemon.deadman.current is not None
+        again = daemon.motors
+        assert isinstance(again, GpiodMotors)
+        assert again.watchdog is not None
+        assert again.watchdog.exit_status() is None  # a new watchdog guards them

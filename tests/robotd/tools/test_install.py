@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 from paths import REPO
 
+from drivers.gpiod.lines import gpiod_new_enough
 from robotd.cli import main
 from robotd.commands.install import ask_beacon_serial
 from robotd.daemon.teleop import check_key_file
@@ -390,3 +391,32 @@ def test_the_beacon_is_picked_from_the_serial_devices_by_id(tmp_path: Path) -> N
     assert f"2) usb-STMicroelectronics_STM32_Virtual_ComPort_{SERIAL}-if00 -> ../../ttyACM0" in shown.getvalue()
     assert ask_beacon_serial(tmp_path, io.StringIO("\n"), io.StringIO()) is None  # skipped: no rule
     assert ask_beacon_serial(tmp_path / "none", io.StringIO("1\n"), io.StringIO()) is None
+
+
+def test_a_pi5_without_a_usable_gpiod_package_stops_before_anything_changes_and_says_how_to_get_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    root = fresh_root(tmp_path, model="Raspberry Pi 5 Model B Rev 1.0", pigpio=False)
+    before = snapshot(root)
+    monkeypatch.setattr("robotd.tools.install.gpiod_version", lambda: None)
+    status, out = install_into(root, capsys)
+    assert status == 1
+    assert "the Python package gpiod is not importable" in out
+    assert "-m pip install 'robotd[pi5]'" in out
+    assert snapshot(root) == before
+    monkeypatch.setattr("robotd.tools.install.gpiod_version", lambda: "1.6.3")  # Bookworm's, the v1 API
+    status, out = install_into(root, capsys)
+    assert (status, "gpiod 1.6.3 is too old (the v1 API)" in out) == (1, True)
+    monkeypatch.undo()
+    status, out = install_into(root, capsys)  # the real one, installed with the test extra
+    assert status == 0, out
+    assert "gpiod 2." in out
+
+
+@pytest.mark.parametrize(
+    ("version", "usable"),
+    [("2.2.1", True), ("2.5.0", True), ("2.10", True), ("3.0", True), ("2.1.3", False), ("1.6.3", False),
+     ("2.2.0rc1", True), ("", False), (None, False)],
+)  # fmt: skip
+def test_gpiod_versions_from_2_2_on_are_usable(version: str | None, usable: bool) -> None:
+    assert gpiod_new_enough(version) is usable
