@@ -107,6 +107,22 @@ def _pigpio(config: RobotdConfig, clock: Callable[[], float]) -> Hardware:
     )
 
 
+def gpiod_motors(config: RobotdConfig, io: GpiodIo, *, heartbeat_timeout_s: float | None = None) -> GpiodMotors:
+    """The gpiod back-end's four L298 channels as the configuration describes them (the daemon's and the doctor's)."""
+    gpio, motors = config.gpio, config.motors
+    return GpiodMotors(
+        wheel_pins(motors),
+        frequency_hz=motors.pwm_frequency_hz,
+        duty_limit=motors.duty_limit,
+        pwm_chip=find_pwm_chip(gpio.pwm_device, gpio.pwm_class_dir),
+        attributes=io.pwm_attributes,
+        open_outputs=io.open_output_lines,
+        gpio_chip=gpio.gpio_chip or None,
+        watchdog=gpio.pwm_watchdog,
+        heartbeat_timeout_s=heartbeat_timeout_s,
+    )
+
+
 def _gpiod(config: RobotdConfig, clock: Callable[[], float], io: GpiodIo) -> Hardware:
     gpio, encoders, motors = config.gpio, config.encoders, config.motors
     chip = gpio.gpio_chip or None
@@ -126,19 +142,7 @@ def _gpiod(config: RobotdConfig, clock: Callable[[], float], io: GpiodIo) -> Har
 
     def connect_motors() -> GpiodMotors:
         connected.clear()
-        connected.append(
-            GpiodMotors(
-                wheel_pins(motors),
-                frequency_hz=motors.pwm_frequency_hz,
-                duty_limit=motors.duty_limit,
-                pwm_chip=find_pwm_chip(gpio.pwm_device, gpio.pwm_class_dir),
-                attributes=io.pwm_attributes,
-                open_outputs=io.open_output_lines,
-                gpio_chip=chip,
-                watchdog=gpio.pwm_watchdog,
-                heartbeat_timeout_s=deadman_timeout_s(config) if heartbeat else None,
-            )
-        )
+        connected.append(gpiod_motors(config, io, heartbeat_timeout_s=deadman_timeout_s(config) if heartbeat else None))
         return connected[0]
 
     async def install_deadman() -> Deadman:

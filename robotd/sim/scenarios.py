@@ -84,7 +84,14 @@ def figure8(params: ScenarioParams, loops: int) -> Scenario:
 
 def random_teleop(params: ScenarioParams, loops: int, seed: int) -> Scenario:
     """Random stick movements: 1-3 s commands in every direction with stops, about 40 s per loop."""
-    rng = random.Random(f"robotd-sim:{seed}:teleop")
+    return random_commands(params, loops, random.Random(f"robotd-sim:{seed}:teleop"), "random", lateral=True)
+
+
+def random_commands(
+    params: ScenarioParams, loops: int, rng: random.Random, name: str, *, lateral: bool, max_turn: float = 0.6
+) -> Scenario:
+    """1-3 s commands (a fifth of them stops) drawn from `rng`, about 40 s per loop; sideways ones only if `lateral`
+    (a differential-drive base has none)."""
     v = params.speed_mps
     segments = [Segment(2.0 * params.pause_s)]
     total = 0.0
@@ -93,10 +100,12 @@ def random_teleop(params: ScenarioParams, loops: int, seed: int) -> Scenario:
         if rng.random() < 0.2:
             segments.append(Segment(duration))
         else:
-            segments.append(Segment(duration, rng.uniform(-v, v), rng.uniform(-v, v), rng.uniform(-0.6, 0.6)))
+            vx = rng.uniform(-v, v)
+            vy = rng.uniform(-v, v) if lateral else 0.0
+            segments.append(Segment(duration, vx, vy, rng.uniform(-max_turn, max_turn)))
         total += duration
     segments.append(Segment(2.0 * params.pause_s))
-    return Scenario("random", tuple(segments))
+    return Scenario(name, tuple(segments))
 
 
 def outage(params: ScenarioParams, loops: int) -> Scenario:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from robotd import kinematics
 from robotd.config.model import RobotdConfig
 from robotd.logs.sensorlog import Event, IpsFix, TwistSample, Wheels
-from robotd.sim.scenarios import Scenario, ScenarioParams, Segment, random_teleop
+from robotd.sim.scenarios import Scenario, ScenarioParams, random_commands, random_teleop
 
 VARIANTS = ("latency", "geometry", "slip", "twist", "diffdrive", "harsh")
 TWIST_RATE_HZ = 20.0
@@ -49,18 +49,7 @@ def _rng(name: str, seed: int) -> random.Random:
 def _random_diff(params: ScenarioParams, loops: int, seed: int) -> Scenario:
     """Random forward driving and turning, as a differential-drive base can (no sideways command)."""
     rng = random.Random(f"robotd-sim:{seed}:teleop-diff")
-    v = params.speed_mps
-    segments = [Segment(2.0 * params.pause_s)]
-    total = 0.0
-    while total < 40.0 * loops:
-        duration = rng.uniform(1.0, 3.0)
-        if rng.random() < 0.2:
-            segments.append(Segment(duration))
-        else:
-            segments.append(Segment(duration, rng.uniform(-v, v), 0.0, rng.uniform(-0.8, 0.8)))
-        total += duration
-    segments.append(Segment(2.0 * params.pause_s))
-    return Scenario("diffdrive", tuple(segments))
+    return random_commands(params, loops, rng, "diffdrive", lateral=False, max_turn=0.8)
 
 
 def build(name: str, config: RobotdConfig, params: ScenarioParams, loops: int, seed: int) -> VariantRun:

@@ -17,12 +17,10 @@ from collections.abc import AsyncIterator, Callable, Sequence
 
 from drivers.gpiod.encoders import GpiodEncoders
 from drivers.gpiod.lines import EventLineSettings, GpioUnavailableError
-from drivers.gpiod.motors import GpiodMotors
 from drivers.gpiod.pwm import RP1_PWM_CHANNELS, find_pwm_chip
 from drivers.wheels.encoders import wiring
-from drivers.wheels.motors import wheel_pins
 from robotd.config.model import RobotdConfig
-from robotd.daemon.hardware import GpiodIo
+from robotd.daemon.hardware import GpiodIo, gpiod_motors
 from robotd.tools.doctor_pins import pins_in_use
 from robotd.tools.gpio_backend import BackendUnavailableError, Counts, GpioBackend
 
@@ -108,18 +106,8 @@ class GpiodWheelDrive:
     """The four L298 channels, one wheel at a time, through the daemon's `GpiodMotors` (see the module docstring)."""
 
     def __init__(self, config: RobotdConfig, io: GpiodIo) -> None:
-        gpio, motors = config.gpio, config.motors
         try:
-            self._motors = GpiodMotors(
-                wheel_pins(motors),
-                frequency_hz=motors.pwm_frequency_hz,
-                duty_limit=motors.duty_limit,
-                pwm_chip=find_pwm_chip(gpio.pwm_device, gpio.pwm_class_dir),
-                attributes=io.pwm_attributes,
-                open_outputs=io.open_output_lines,
-                gpio_chip=gpio.gpio_chip or None,
-                watchdog=gpio.pwm_watchdog,
-            )
+            self._motors = gpiod_motors(config, io)
         except (GpioUnavailableError, OSError) as error:
             raise _unavailable(error) from None
 
