@@ -251,6 +251,8 @@ class Estimator:
             kx, ky, _ = self._predictor.scale
             u = track.twist_at(t_meas) or self._pending()
             r += (self._calibration.sigmas[3] ** 2) * ((kx * u[0]) ** 2 + (ky * u[1]) ** 2)
+        # correlated fixes are fused for what they are worth: each one's variance grows by the AR(1) discount
+        r /= self._calibration.fix_information
         inn = ekf.innovation(px, py, pth, pp, x, y, r, self._offset[0], self._offset[1])
         verdict = gate.judge(t_meas, inn, r)
         before = self.modes.on_verdict(verdict)
