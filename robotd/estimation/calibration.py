@@ -38,6 +38,9 @@ N_CAL = 5  # kx, ky, kw, tau_u, tau_k
 KX, KY, KW, TAU_U, TAU_K = range(N_CAL)
 N_NUISANCE = 4  # phi, tx, ty, psi
 MIN_FIXES = 12
+# A window moves the calibration only when its fixes are worth this many independent ones (five per parameter of
+# the fit's nine: the lag-one correlation that discounts them is itself estimated from a few dozen residuals)
+MIN_INDEPENDENT_FIXES = 24
 PSI_SIGMA = 0.05  # rad per metre: heading drift from unequal traction, the prior of the window's psi
 SCALE_WALK = 0.01**2 / 60.0  # variance per second: a scale drifts about 1 % a minute at most
 LATENCY_WALK = 0.005**2 / 60.0  # s^2 per second: a delay drifts about 5 ms a minute at most
@@ -57,6 +60,12 @@ class Calibration:
     sigmas: tuple[float, float, float, float, float] = (0.1, 0.1, 0.1, 0.1, 0.05)
     windows: int = 0  # windows fitted so far
     fix_correlated_var: float = 0.0  # m^2 per axis: the part of the fixes' error that persists from fix to fix
+    fix_correlation: float = 0.0  # lag-one correlation of consecutive fixes' errors (0: independent fixes)
+
+    @property
+    def fix_information(self) -> float:
+        """What one fix is worth against an independent one: (1 - rho) / (1 + rho), the AR(1) discount."""
+        return _information(self.fix_correlation)
 
     @property
     def wheel_radius_scale(self) -> float:
@@ -88,6 +97,7 @@ class Calibration:
             "time_error_s": round(self.time_error_s, 5),
             "time_error_sigma_s": round(s[TAU_K], 5),
             "fix_correlated_sigma_m": round(math.sqrt(self.fix_correlated_var), 5),
+            "fix_correlation": round(self.fix_correlation, 5),
             "windows": self.windows,
         }
 
@@ -111,6 +121,8 @@ class Calibrator:
         self.cov = np.diag(np.square(np.asarray(start.sigmas, dtype=np.float64)))
         self.windows = start.windows
         self.fix_correlated_var = start.fix_correlated_var
+        self.fix_correlation = start.fix_correlation
+        self._data_correlation = 0.0  # of the residuals of each window's fit on its data alone, smoothed
         self._fitted_at = math.nan
         self._clamp()
         self.current = self._snapshot()
@@ -204,7 +216,7 @@ class Calibrator:
             rho = _lag_one_correlation(residual[keep], sigma2)
             # correlated fix errors (multipath, a wall's echo) carry less information than as many independent ones:
             # an AR(1) sequence of n values is worth n (1 - rho) / (1 + rho) independent ones
-            weight = max((1.0 - rho) / (1.0 + rho), 0.02) / sigma2
+            weight = _information(rho) / sigma2
             r = residual[keep].reshape(-1)
             j = jac[keep].reshape(-1, N_NUISANCE + N_CAL)
             a = j.T @ j * weight
@@ -227,14 +239,25 @@ class Calibrator:
                 break
         if not np.all(np.isfinite(cal)):
             return False
+        n = int(keep.sum())
+        # what fusing many fixes cannot average away: their error shared from one fix to the next (smoothed)
+        # (only a correlation beyond chance, 2 / sqrt(n): the path's own small deformations by slip are not the fixes')
+        beyond_chance = rho > 2.0 / math.sqrt(n)
+        correlated = sigma2 * rho if beyond_chance else 0.0
+        smoothing = 1.0 if self.windows == 0 else 0.3
+        self.fix_correlated_var += (correlated - self.fix_correlated_var) * smoothing
+        self.fix_correlation += ((rho if beyond_chance else 0.0) - self.fix_correlation) * smoothing
+        self.windows += 1
+        # the fixes' correlation is the installation's (anchors, walls), not one window's: judged over the windows
+        data_rho = _data_correlation(path, np.concatenate([nuisance, cal]), stated, timed, zs, keep)
+        self._data_correlation += (data_rho - self._data_correlation) * smoothing
+        if n * _information(self._data_correlation) < MIN_INDEPENDENT_FIXES:
+            # too few independent fixes for the path's nine parameters: the fit would follow the fixes' shared error
+            # (a wall's echo bends the path as a wrong scale would), so the window says nothing about the odometry
+            return True
         covariance = np.linalg.inv(info)[N_NUISANCE:, N_NUISANCE:]
         self.mean = cal
         self.cov = 0.5 * (covariance + covariance.T)
-        self.windows += 1
-        # what fusing many fixes cannot average away: their error shared from one fix to the next (smoothed)
-        # (only a correlation beyond chance, 2 / sqrt(n): the path's own small deformations by slip are not the fixes')
-        correlated = sigma2 * rho if rho > 2.0 / math.sqrt(int(keep.sum())) else 0.0
-        self.fix_correlated_var += (correlated - self.fix_correlated_var) * (1.0 if self.windows == 1 else 0.3)
         self._clamp()
         return True
 
@@ -249,7 +272,35 @@ class Calibrator:
         m = self.mean.tolist()
         s = np.sqrt(np.clip(np.diag(self.cov), 0.0, None)).tolist()
         sigmas = (s[0], s[1], s[2], s[3], s[4])
-        return Calibration(m[0], m[1], m[2], m[3], m[4], sigmas, self.windows, self.fix_correlated_var)
+        return Calibration(
+            m[0], m[1], m[2], m[3], m[4], sigmas, self.windows, self.fix_correlated_var, self.fix_correlation
+        )
+
+
+def _data_correlation(  # noqa: PLR0917 - the fit's arrays as they are
+    path: _Path,
+    params: FloatArray,
+    stated: FloatArray,
+    timed: npt.NDArray[np.bool_],
+    zs: FloatArray,
+    keep: npt.NDArray[np.bool_],
+) -> float:
+    """The lag-one correlation of the kept fixes' residuals after one Gauss-Newton step on the data alone.
+
+    Residuals of the fit with its prior are correlated also when the prior holds the path back from what the fixes
+    say (a robot beyond the bounds); the data's own fit leaves only what the fixes share from one to the next.
+    """
+    residual, jac = _residuals_and_jacobian(path, params, stated, timed, zs)
+    j = jac[keep].reshape(-1, N_NUISANCE + N_CAL)
+    step, *_ = np.linalg.lstsq(j, residual[keep].reshape(-1), rcond=None)
+    after = residual[keep] - (j @ step).reshape(-1, 2)
+    sigma2 = max(float(np.mean(after[:, 0] ** 2 + after[:, 1] ** 2)) / 2.0, 1e-12)
+    return _lag_one_correlation(after, sigma2)
+
+
+def _information(rho: float) -> float:
+    """An AR(1) sequence of n values of lag-one correlation rho is worth n (1 - rho) / (1 + rho) independent ones."""
+    return max((1.0 - rho) / (1.0 + rho), 0.02)
 
 
 def _lag_one_correlation(residual: FloatArray, sigma2: float) -> float:

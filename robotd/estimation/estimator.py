@@ -251,6 +251,8 @@ class Estimator:
             kx, ky, _ = self._predictor.scale
             u = track.twist_at(t_meas) or self._pending()
             r += (self._calibration.sigmas[3] ** 2) * ((kx * u[0]) ** 2 + (ky * u[1]) ** 2)
+        # correlated fixes are fused for what they are worth: each one's variance grows by the AR(1) discount
+        r /= self._calibration.fix_information
         inn = ekf.innovation(px, py, pth, pp, x, y, r, self._offset[0], self._offset[1])
         verdict = gate.judge(t_meas, inn, r)
         before = self.modes.on_verdict(verdict)
@@ -396,7 +398,8 @@ class Estimator:
         return x, y, th, p
 
     def _extrapolate(self, t: float | None) -> tuple[float, float, float, float, Twist3, ekf.Cov]:
-        """Time, pose, twist in force and P of the newest state carried forward to t (mean only) when t is later.
+        """Time, pose, twist in force and P of the newest state carried forward to t when t is later (one prediction
+        step with the twist in force: the mean as eq. 5, P as eq. 7).
 
         P includes the fixes' correlated error (calibration.fix_correlated_var): the filter fuses fixes as if their
         errors were independent, which averages away an error they share; the estimate cannot be surer than that.
@@ -410,11 +413,8 @@ class Estimator:
         if t is None:
             t = max(when, self._wheels.last_t)
         if t > when and math.isfinite(when):
-            vx, vy, wz = u
-            dt = t - when
-            dx, dy, _, _ = ekf.displacement(vx, vy, wz, dt, th, midpoint=True)
-            x, y = x + dx, y + dy
-            th = ekf.wrap_angle(th + wz * dt)
+            # the same process model as a step: the covariance grows with the motion the extrapolation assumes
+            x, y, th, p = self._predictor.move((x, y, th, p), raw, t - when)
             when = t
         shared = self._calibration.fix_correlated_var
         if shared > 0.0:

@@ -16,7 +16,7 @@ import multiprocessing
 import statistics
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,11 +25,14 @@ import numpy as np
 from robotd.config.model import EkfConfig, RobotdConfig
 from robotd.logs.sensorlog import Event, LogWriter, Meta, SensorLog, Truth, parse_lines
 from robotd.offline import librsf, plots
+from robotd.offline.consistency import Consistency
 from robotd.offline.metrics import ErrorStats, Trajectory, fixes_trajectory
 from robotd.offline.replay import METHODS, ReplayResult, replay
 
 # Every figure of ErrorStats that is summarised over seeds (heading only for methods that have one).
 METRICS = ("rmse_m", "max_m", "final_m", "mean_m", "median_m", "heading_rmse_deg")
+# Whether a filter's covariance is honest (robotd.offline.consistency), summarised too for the filters that have one.
+CONSISTENCY_METRICS = ("inside_95", "nees_mean")
 # The paper's section IV, its square driven by remote control: the largest errors it reports.
 PAPER_MAX_M = {"odometry": 1.3, "ips": 4.6, "paper_ekf": 1.1}
 # Issue 8's targets for robotd's EKF under the virtual robot's paper-like conditions, checked on every seed.
@@ -76,6 +79,7 @@ class Run:
     ekf_worst_at_s: float | None  # when robotd's EKF had its largest position error (s from the first truth sample)
     counters: dict[str, int]
     figures: FigureData | None
+    consistency: dict[str, Consistency] = field(default_factory=dict)  # per filter: NEES, share inside 95 %
 
     def target_misses(self) -> list[str]:
         """How robotd's EKF misses the issue's targets on this run (empty when it meets them)."""
@@ -144,7 +148,8 @@ def score_log(log: SensorLog, config: RobotdConfig, seed: int | None, keep_figur
         raise ValueError("the log has no ground truth to score against")
     data = figure_data(log, result)
     span = log.events[-1].t - log.events[0].t if log.events else 0.0
-    return Run(seed, span, result.metrics, _worst_at(data), dict(result.counters), data if keep_figures else None)
+    figures = data if keep_figures else None
+    return Run(seed, span, result.metrics, _worst_at(data), dict(result.counters), figures, dict(result.consistency))
 
 
 def run_seed(
@@ -199,11 +204,19 @@ def summarise(runs: Sequence[Run]) -> dict[str, dict[str, Spread]]:
                 value = None if stats is None else getattr(stats, metric)
                 if value is not None:
                     values.append(float(value))
-            if values:
-                std = statistics.stdev(values) if len(values) > 1 else 0.0
-                spreads[metric] = Spread(statistics.fmean(values), std, min(values), max(values), len(values))
+            _add_spread(spreads, metric, values)
+        for metric in CONSISTENCY_METRICS:
+            honesty = [getattr(h, metric) for run in runs if (h := run.consistency.get(method)) is not None]
+            _add_spread(spreads, metric, [float(value) for value in honesty if value is not None])
         summary[method] = spreads
     return summary
+
+
+def _add_spread(spreads: dict[str, Spread], metric: str, values: Sequence[float]) -> None:
+    """Add the metric's spread over values, when there are any."""
+    if values:
+        std = statistics.stdev(values) if len(values) > 1 else 0.0
+        spreads[metric] = Spread(statistics.fmean(values), std, min(values), max(values), len(values))
 
 
 def real_data_run(folder: Path, config: RobotdConfig, keep_figures: bool) -> tuple[Run | None, str]:
@@ -249,6 +262,7 @@ def run_experiment(
 
 
 __all__ = [
+    "CONSISTENCY_METRICS",
     "METRICS",
     "PAPER_MAX_M",
     "TARGET_MAX_M",

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from robotd.offline import plots
+from robotd.offline.consistency import Consistency
 from robotd.offline.experiment import METRICS, PAPER_MAX_M, TARGET_MAX_M, TARGET_RMSE_M, Experiment, Run, Spread
 from robotd.offline.metrics import ErrorStats
 from robotd.offline.replay import METHODS
@@ -52,8 +53,11 @@ def _paper_max(method: str) -> str:
 
 def _summary_table(exp: Experiment) -> list[str]:
     lines = [
-        "| method | RMSE (m) | max (m) | worst max (m) | final (m) | heading RMSE (°) | paper's published max (m) |",
-        "|---|--:|--:|--:|--:|--:|--:|",
+        (
+            "| method | RMSE (m) | max (m) | worst max (m) | final (m) | heading RMSE (°) | inside 95 % ellipse "
+            "| mean NEES | paper's published max (m) |"
+        ),
+        "|---|--:|--:|--:|--:|--:|--:|--:|--:|",
     ]
     for method in METHODS:
         spreads = exp.summary.get(method, {})
@@ -65,6 +69,8 @@ def _summary_table(exp: Experiment) -> list[str]:
             NO_VALUE if worst is None else _metres(worst.max),
             _spread(spreads.get("final_m")),
             _spread(spreads.get("heading_rmse_deg"), 2),
+            _spread(spreads.get("inside_95"), 2),
+            _spread(spreads.get("nees_mean"), 2),
             _paper_max(method),
         ]
         lines.append("| " + " | ".join(cells) + " |")
@@ -117,13 +123,28 @@ def _real_data(exp: Experiment) -> list[str]:
             "(github.com/TUC-ProAut/libRSF, datasets/Indoor_UWB)."
         ),
         "",
-        "| method (real data) | RMSE (m) | max (m) | final (m) |",
-        "|---|--:|--:|--:|",
+        "| method (real data) | RMSE (m) | max (m) | final (m) | inside 95 % ellipse | mean NEES |",
+        "|---|--:|--:|--:|--:|--:|",
     ]
     for method in METHODS:
         cells = [LABELS[method], *_stats_cells(exp.real.metrics.get(method), with_heading=False)]
+        cells += _honesty_cells(exp.real.consistency.get(method))
         lines.append("| " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        (
+            "An honest filter holds the truth inside its 95 % ellipse 95 % of the time, with a mean NEES of 2 "
+            "(robotd/offline/consistency.py); odometry and the raw fixes claim no covariance."
+        ),
+    ]
     return lines
+
+
+def _honesty_cells(honesty: Consistency | None) -> list[str]:
+    """The share inside the 95 % ellipse and the mean NEES, or dashes for a method without a covariance."""
+    if honesty is None or honesty.inside_95 is None or honesty.nees_mean is None:
+        return [NO_VALUE, NO_VALUE]
+    return [f"{honesty.inside_95:.2f}", f"{honesty.nees_mean:.2f}"]
 
 
 def _per_seed(exp: Experiment) -> list[str]:
@@ -203,6 +224,7 @@ def results_json(exp: Experiment) -> dict[str, Any]:
     if exp.real is not None:
         real = {"source": exp.real_note, "duration_s": round(exp.real.duration_s, 3)}
         real["metrics"] = _metrics_json(exp.real.metrics)
+        real["consistency"] = {name: honesty.as_dict() for name, honesty in exp.real.consistency.items()}
     return {
         "scenario": exp.scenario,
         "loops": exp.loops,
@@ -222,6 +244,7 @@ def results_json(exp: Experiment) -> dict[str, Any]:
                 "duration_s": round(run.duration_s, 3),
                 "ekf_worst_at_s": None if run.ekf_worst_at_s is None else round(run.ekf_worst_at_s, 3),
                 "metrics": _metrics_json(run.metrics),
+                "consistency": {name: honesty.as_dict() for name, honesty in run.consistency.items()},
                 "counters": run.counters,
             }
             for run in exp.runs

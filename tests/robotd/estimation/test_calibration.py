@@ -91,3 +91,33 @@ def test_scales_stay_within_their_bounds_whatever_the_fixes_say() -> None:
     assert c.kx == pytest.approx(1.1)
     assert 0.0 <= c.latency_s <= 0.3
     assert np.isfinite(c.sigmas).all()
+
+
+def _circle_drive(fix_errors: np.ndarray, true_scale: float) -> Calibration:
+    """A robot driving circles at 0.3 m/s whose fixes (8 Hz) carry `fix_errors`; odometry reads 1 / true_scale."""
+    calibrator = Calibrator(Calibration(), CalibrationLimits(), (0.0, 0.0))
+    t, dt, radius = 0.0, 0.025, 1.0
+    for k in range(len(fix_errors) * 5):
+        calibrator.on_step(t, t + dt, (0.3 / true_scale, 0.0, 0.3 / radius / true_scale))
+        t += dt
+        if k % 5 == 4:
+            angle = 0.3 * t / radius
+            ex, ey = fix_errors[k // 5]
+            calibrator.on_fix(t, radius * np.sin(angle) + ex, radius * (1.0 - np.cos(angle)) + ey, timed=True)
+    return calibrator.current
+
+
+def test_fixes_sharing_a_slowly_varying_error_do_not_move_the_scales_but_are_discounted() -> None:
+    rng = np.random.default_rng(5)
+    n, rho = 1600, 0.9  # 200 s of fixes whose error persists about a second (multilateration, a wall's echo)
+    shared = np.zeros((n, 2))
+    for k in range(1, n):
+        shared[k] = rho * shared[k - 1] + rng.normal(0.0, 0.1 * np.sqrt(1.0 - rho * rho), 2)
+    correlated = _circle_drive(shared, 1.08)
+    assert correlated.windows > 10
+    assert correlated.kx == pytest.approx(1.0)  # the windows' fixes are worth too few independent ones
+    assert correlated.fix_correlation > 0.6
+    assert correlated.fix_information < 0.25  # each fix is fused for what it is worth
+    white = _circle_drive(rng.normal(0.0, 0.03, (n, 2)), 1.08)
+    assert white.kx == pytest.approx(1.08, abs=0.02)  # the same drive with independent fixes calibrates
+    assert white.fix_correlation < 0.2

@@ -286,3 +286,19 @@ def test_with_the_heading_unknown_the_fixes_steer_the_position_until_a_window_gi
         assert abs(math.remainder(est.pose().theta - th, 2 * math.pi)) < 0.1  # acquired either way
     assert worst[3.14] < 0.15
     assert worst[3.14] < worst[0.1] / 2  # a confident wrong heading drives the estimate away until it is re-aligned
+
+
+def test_a_pose_extrapolated_beyond_the_newest_input_grows_uncertain_as_the_process_noise_says() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    _drive(est, 5.0, (0.4, 0.0, 0.2), noise=0.02)
+    newest = est.pose()
+    later = est.pose(newest.t + 0.5)
+    assert later.t == newest.t + 0.5
+    assert math.hypot(later.x - newest.x, later.y - newest.y) > 0.19  # moved on with the twist in force
+    # the extrapolation is one prediction step: the covariance of a step of 0.5 s with that twist, not the newest one
+    assert later.cov[0] + later.cov[4] > newest.cov[0] + newest.cov[4]
+    assert later.cov[8] > newest.cov[8]
+    at_rest = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    _drive(at_rest, 5.0, (0.0, 0.0, 0.0), noise=0.02)
+    still = at_rest.pose()
+    assert at_rest.pose(still.t + 0.5).cov == still.cov  # a robot at rest does not grow uncertain by waiting

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import statistics
 import struct
 from pathlib import Path
 
@@ -140,6 +141,15 @@ def test_table_has_every_method_beside_the_papers_published_maxima(experiment: E
         assert cells[2] == f"{maximum.max:.3f}"
         published = PAPER_MAX_M["paper_ekf" if method == "ekf" else method]
         assert cells[-1].startswith(str(published))
+        # the filters' honesty beside their accuracy; odometry and the raw fixes claim no covariance
+        inside, nees = cells[5], cells[6]
+        if method in {"ekf", "paper_ekf"}:
+            honest = [run.consistency[method] for run in experiment.runs]
+            shares = [h.inside_95 for h in honest if h.inside_95 is not None]
+            assert inside == f"{statistics.fmean(shares):.2f} ± {statistics.stdev(shares):.2f}"
+            assert nees.startswith(f"{experiment.summary[method]['nees_mean'].mean:.2f} ± ")
+        else:
+            assert (inside, nees) == ("–", "–")
     assert {"1.3", "4.6", "1.1"} <= {cells[-1].split()[0] for cells in rows.values()}
 
 
@@ -154,7 +164,11 @@ def test_real_data_row_carries_the_attribution(experiment: Experiment) -> None:
     assert "Tim Pfeifer" in markdown
     ekf = experiment.real.metrics["ekf"]
     assert ekf is not None
-    assert f"| robotd EKF | {ekf.rmse_m:.3f} | {ekf.max_m:.3f} | {ekf.final_m:.3f} |" in markdown
+    honesty = experiment.real.consistency["ekf"]
+    assert honesty.inside_95 is not None
+    assert honesty.nees_mean is not None
+    row = f"| robotd EKF | {ekf.rmse_m:.3f} | {ekf.max_m:.3f} | {ekf.final_m:.3f} | {honesty.inside_95:.2f} |"
+    assert f"{row} {honesty.nees_mean:.2f} |" in markdown
 
 
 def test_outputs_are_the_table_the_json_and_png_figures(experiment: Experiment, tmp_path: Path) -> None:
@@ -172,6 +186,9 @@ def test_outputs_are_the_table_the_json_and_png_figures(experiment: Experiment, 
     assert ekf is not None
     assert math.isclose(data["runs"][1]["metrics"]["ekf"]["max_m"], ekf.max_m, abs_tol=1e-6)
     assert data["summary"]["odometry"]["max_m"]["n"] == len(SEEDS)
+    honesty = experiment.runs[1].consistency["ekf"]
+    assert data["runs"][1]["consistency"]["ekf"]["inside_95"] == pytest.approx(honesty.inside_95, abs=1e-4)
+    assert data["summary"]["ekf"]["nees_mean"]["n"] == len(SEEDS)
 
 
 def test_command_writes_its_outputs_and_skips_a_missing_dataset(
