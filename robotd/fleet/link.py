@@ -72,6 +72,10 @@ def fleet_status(robot_id: str, status: dict[str, Any], stop: dict[str, Any]) ->
     }
 
 
+class _LeavingError(Exception):
+    """The link's run() was cancelled: the session ends (see FleetLink._stopping)."""
+
+
 class FleetLink:
     """The robot's MQTT client (see the module docstring); `run()` is one task of the daemon's TaskGroup."""
 
@@ -103,6 +107,7 @@ class FleetLink:
         self._status_due = asyncio.Event()
         self._last_refusal_log = -float("inf")
         self._leaving = False  # cancelled: the daemon is stopping
+        self._leave = asyncio.Event()  # set when run() is cancelled, whatever aiomqtt did with its own tasks' cancels
         self.counts: dict[str, int] = dict.fromkeys(
             ("connects", "connection_losses", "published", "dropped", "poses", "statuses"), 0
         )
@@ -144,6 +149,25 @@ class FleetLink:
             tasks.create_task(self._pose_sampler(), name="fleet-pose")
             tasks.create_task(self._status_sampler(), name="fleet-status")
             tasks.create_task(self._connection(), name="fleet-connection")
+            tasks.create_task(self._stopping(), name="fleet-stopping")
+
+    async def _stopping(self) -> None:
+        """Wait for run()'s cancellation, and make it reach the connection whatever aiomqtt did with it.
+
+        aiomqtt waits with asyncio.wait_for, which on Python 3.11 drops a cancellation that arrives as the wait ends
+        (a subscribe or publish answered at the moment the daemon stops): the connection's task would then carry on
+        and the daemon's exit would wait for it forever. This task's plain wait always receives its cancellation.
+        """
+        try:
+            await asyncio.Event().wait()
+        finally:
+            self._leaving = True
+            self._leave.set()
+            self._outbox_ready.set()  # a sender waiting for work sees the leave at once
+
+    async def _until_leaving(self) -> None:
+        await self._leave.wait()
+        raise _LeavingError  # an error, not CancelledError: a TaskGroup ignores a child that ends cancelled
 
     async def _pose_sampler(self) -> None:
         period = 1.0 / self.config.pose_rate_hz
@@ -172,7 +196,7 @@ class FleetLink:
     async def _connection(self) -> None:
         backoff = Backoff(FIRST_RETRY_S, self.config.reconnect_max_s)
         lost_logged = False
-        while True:
+        while not self._leave.is_set():
             try:
                 async with self._client() as client:
                     self.connected = True
@@ -218,20 +242,30 @@ class FleetLink:
             async with asyncio.TaskGroup() as tasks:
                 tasks.create_task(self._receive(client), name="fleet-receive")
                 tasks.create_task(self._send(client), name="fleet-send")
+                tasks.create_task(self._until_leaving(), name="fleet-leaving")
+        except ExceptionGroup as group:
+            if group.subgroup(_LeavingError) is None:
+                raise  # the connection failed: _connection reconnects
+            self._say_offline(client)
+            raise asyncio.CancelledError from None
         except asyncio.CancelledError:
-            # The daemon is stopping and zeroes the motors only once every task has ended: say `offline` without
-            # waiting (paho writes it now if the socket takes it), and bound the disconnection's wait.
-            self._leaving = True
-            client.timeout = EXIT_WAIT_S
-            with contextlib.suppress(Exception):
-                client._client.publish(topics.status(self.robot_id), offline_payload(self.robot_id), 1, True)
+            self._say_offline(client)
             raise
+
+    def _say_offline(self, client: aiomqtt.Client) -> None:
+        """The daemon is stopping and zeroes the motors only once every task has ended: say `offline` without
+        waiting (paho writes it now if the socket takes it), and bound the disconnection's wait."""
+        self._leaving = True
+        client.timeout = EXIT_WAIT_S
+        with contextlib.suppress(Exception):
+            client._client.publish(topics.status(self.robot_id), offline_payload(self.robot_id), 1, True)
 
     async def _send(self, client: aiomqtt.Client) -> None:
         paho = client._client  # (private: aiomqtt exposes no other way to see paho's unsent bytes)
-        while True:
+        # `_leave` checked as well as cancellation: aiomqtt's publish can swallow a cancellation (see _stopping)
+        while not self._leave.is_set():
             await self._outbox_ready.wait()
-            while self._outbox:
+            while self._outbox and not self._leave.is_set():
                 if paho.want_write():  # the broker is not keeping up: let the outbox take the backlog
                     await asyncio.sleep(BACKED_UP_POLL_S)
                     continue

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
+import io
 import socket
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -27,6 +28,8 @@ from robotd.kinematics import Twist
 
 Duties = tuple[float, float, float, float]
 AT_REST: Duties = (0.0, 0.0, 0.0, 0.0)
+
+STOP_TIMEOUT_S = 20.0  # far beyond a daemon's exit (well under a second), well under pytest's timeout
 
 
 class FakeClock:
@@ -173,9 +176,18 @@ async def running(daemon: Daemon) -> AsyncIterator[asyncio.Task[int]]:
         yield task
     finally:
         task.cancel()
+        # bounded: a daemon that does not end when cancelled is a bug to show (with every task's stack), not a hang
+        done, _ = await asyncio.wait({task}, timeout=STOP_TIMEOUT_S)
+        gc.unfreeze()  # run() freezes the start-up heap: give the test process its collector back
+        if not done:
+            stacks = io.StringIO()
+            for other in asyncio.all_tasks():
+                other.print_stack(limit=6, file=stacks)
+            raise AssertionError(
+                f"the daemon did not end within {STOP_TIMEOUT_S} s of its cancellation:\n{stacks.getvalue()}"
+            )
         with contextlib.suppress(asyncio.CancelledError):
             await task
-        gc.unfreeze()  # run() freezes the start-up heap: give the test process its collector back
 
 
 async def until(condition: Callable[[], bool], what: str, timeout_s: float = 10.0) -> None:
