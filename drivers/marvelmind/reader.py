@@ -164,7 +164,8 @@ class MarvelmindReader:
         """Close the port and wait until it is closed (the transport closes it in an executor)."""
         transport.close()
         with contextlib.suppress(Exception):  # the reason the connection ended was already taken from `closed`
-            await asyncio.wait_for(asyncio.shield(stream.closed), CLOSE_TIMEOUT_S)
+            async with asyncio.timeout(CLOSE_TIMEOUT_S):  # not wait_for: 3.11's can drop a cancellation
+                await asyncio.shield(stream.closed)
 
     def _on_bytes(self, data: bytes) -> None:
         arrival = self._clock()

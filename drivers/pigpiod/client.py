@@ -42,7 +42,8 @@ class PigpioCommandError(Exception):
 
 async def _open(host: str, port: int, timeout_s: float) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
     try:
-        reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout_s)
+        async with asyncio.timeout(timeout_s):  # not wait_for: Python 3.11's can drop a cancellation
+            reader, writer = await asyncio.open_connection(host, port)
     except (OSError, TimeoutError) as error:
         raise PigpiodUnavailableError(host, port, error or "timed out") from error
     sock = writer.get_extra_info("socket")
@@ -107,7 +108,8 @@ class PigpioLink:
     async def _exchange(self, cmd: int, p1: int, p2: int, extension: bytes) -> Answer:
         async with self._lock:
             self._writer.write(encode_command(cmd, p1, p2, extension))
-            return await asyncio.wait_for(self.read_answer(), self.timeout_s)
+            async with asyncio.timeout(self.timeout_s):
+                return await self.read_answer()
 
     def post(self, cmd: int, p1: int = 0, p2: int = 0, extension: bytes = b"") -> None:
         """Send a command without waiting for its answer (never blocks: the socket buffers it)."""
@@ -160,7 +162,8 @@ async def open_notifications(
     reader, writer = await _open(host, port, timeout_s)
     try:
         writer.write(encode_command(Cmd.NOIB))
-        answer = await asyncio.wait_for(reader.readexactly(COMMAND.size), timeout_s)
+        async with asyncio.timeout(timeout_s):
+            answer = await reader.readexactly(COMMAND.size)
     except (OSError, TimeoutError, asyncio.IncompleteReadError) as error:
         writer.close()
         raise PigpiodUnavailableError(host, port, f"no answer to NOIB: {error!r}") from error

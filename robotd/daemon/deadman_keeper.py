@@ -70,7 +70,8 @@ class DeadmanKeeper:
         if deadman is None:
             return
         try:
-            await asyncio.wait_for(deadman.uninstall(), self._uninstall_timeout_s)
+            async with asyncio.timeout(self._uninstall_timeout_s):  # not wait_for: 3.11's can drop a cancellation
+                await deadman.uninstall()
         except (OSError, PigpioCommandError) as error:  # TimeoutError is an OSError
             log.warning("could not remove the deadman script from pigpiod (%s): it stops the motors itself", error)
 

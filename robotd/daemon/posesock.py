@@ -241,7 +241,8 @@ class PoseServer:
             if not writer.transport.get_write_buffer_size():
                 continue  # the socket took it all: nothing to wait for (and no timer to arm, many times a second)
             try:
-                await asyncio.wait_for(writer.drain(), self.stall_s)
+                async with asyncio.timeout(self.stall_s):  # not wait_for: 3.11's can drop a cancellation
+                    await writer.drain()
             except TimeoutError:
                 self.counters["stalled"] += 1
                 log.info("pose client accepted nothing for %.1f s: disconnected", self.stall_s)
