@@ -160,15 +160,15 @@ def beacons(t_ns: int, stationary: Iterable[tuple[int, float, float, float, bool
 def transforms(t_ns: int, correction: Pose2, odom: Pose2, lever_arm: tuple[float, float]) -> FrameTransforms:
     """map -> odom (the filter's correction), odom -> base_link (dead reckoning), base_link -> beacon (lever arm)."""
     edges = ((MAP, ODOM, correction), (ODOM, BASE_LINK, odom), (BASE_LINK, BEACON, (lever_arm[0], lever_arm[1], 0.0)))
-    return FrameTransforms(
-        transforms=[
-            FrameTransform(
-                timestamp=stamp(t_ns),
-                parent_frame_id=parent,
-                child_frame_id=child,
-                translation=Vector3(x=p[0], y=p[1], z=0.0),
-                rotation=_rotation(p[2]),
-            )
-            for parent, child, p in edges
-        ]
+    return FrameTransforms(transforms=[frame_transform(t_ns, parent, child, p) for parent, child, p in edges])
+
+
+def frame_transform(t_ns: int, parent: str, child: str, pose: Pose2) -> FrameTransform:
+    """The transform that places frame `child` at `pose` in frame `parent`."""
+    return FrameTransform(
+        timestamp=stamp(t_ns),
+        parent_frame_id=parent,
+        child_frame_id=child,
+        translation=Vector3(x=pose[0], y=pose[1], z=0.0),
+        rotation=_rotation(pose[2]),
     )

@@ -1,0 +1,126 @@
+"""`robotd fleet view`: two in-process daemons on a real mosquitto, the view from the broker, a real Foxglove client."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fleet_support import FleetDaemon, watcher
+from foxglove_client import FoxgloveClient, Received
+from inprocess_daemon import FakeEncoders, running
+
+from drivers.wheels.encoders import WheelTicks
+from robotd.cli import main
+from robotd.fleet import topics
+from robotd.fleet.broker import OPERATOR, Broker
+from robotd.fleet.fleet_scene import FleetScene
+from robotd.fleet.operator import BrokerAddress
+from robotd.fleet.secrets import load_credentials
+from robotd.fleet.view import ViewServer, serve_fleet_view
+
+ROBOT_TOPICS = ("pose", "pose/ellipse", "pose/trail", "status")
+
+
+@contextlib.asynccontextmanager
+async def fleet_view(broker: Broker) -> AsyncIterator[tuple[int, asyncio.Task[FleetScene]]]:
+    """The view of `broker` as its operator, on a free loopback port: (port, its task)."""
+    setup = broker.setup
+    credentials = load_credentials(str(setup.credentials_file(OPERATOR)), "--credentials")
+    ready: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+    task = asyncio.create_task(
+        serve_fleet_view(BrokerAddress.parse(setup.url), credentials, ViewServer(port=0), on_ready=ready.set_result)
+    )
+    try:
+        port = await asyncio.wait_for(ready, 10.0)
+        yield port, task
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+class TurningEncoders(FakeEncoders):
+    """FakeEncoders whose counts follow the speeds (so that odometry moves the pose), at 6800 counts a turn."""
+
+    COUNTS_PER_RAD = 6800 / math.tau
+
+    def __init__(self, speeds: tuple[float, float, float, float]) -> None:
+        super().__init__(time.monotonic)
+        self.speeds = list(speeds)
+        self.started = time.monotonic()
+
+    def ticks(self, degraded: bool = False) -> WheelTicks:
+        """The counts of turning at the set speeds since the start."""
+        t = self.clock()
+        a, b, c, d = (round(speed * (t - self.started) * self.COUNTS_PER_RAD) for speed in self.speeds)
+        return WheelTicks(t, (a, b, c, d), (self.speeds[0], self.speeds[1], self.speeds[2], self.speeds[3]), degraded)
+
+
+def drive(robot: FleetDaemon, speeds: tuple[float, float, float, float]) -> None:
+    """Turn the robot's wheels (rad/s each: FL, FR, RL, RR), so that its pose moves."""
+    robot.daemon.encoders = TurningEncoders(speeds)
+
+
+def on(received: dict[str, list[Received]], topic: str) -> list[Any]:
+    return [item.message for item in received.get(topic, [])]
+
+
+async def test_the_view_shows_each_robot_as_it_publishes_and_its_last_word(
+    tmp_path: Path, broker: Broker, fleet_key: tuple[Path, bytes]
+) -> None:
+    r1, r2 = (FleetDaemon(tmp_path / name, broker, name, fleet_key[0]) for name in ("r1", "r2"))
+    drive(r1, (4.0, 4.0, 4.0, 4.0))  # forward
+    drive(r2, (-3.0, 3.0, -3.0, 3.0))  # turning on the spot
+    async with fleet_view(broker) as (port, view), watcher(broker) as watching:
+        client = await FoxgloveClient.open(port)  # before any robot: each appears when it first speaks
+        try:
+            async with running(r1.daemon):
+                async with running(r2.daemon):
+                    await client.wait_for_topics({f"/{r}/{leaf}" for r in ("r1", "r2") for leaf in ROBOT_TOPICS})
+                    subscribed = [f"/{r}/{leaf}" for r in ("r1", "r2") for leaf in ROBOT_TOPICS]
+                    await client.subscribe([*subscribed, "/tf"])
+                    received = await client.collect({"/r1/pose": 10, "/r2/pose": 10, "/r1/status": 1, "/tf": 20})
+                # r2's link ends (a clean exit: `offline` as the last will would say)
+                offline: list[Any] = []
+                while not any(status["state"] == "offline" for status in offline):
+                    item = await client.receive()
+                    if item.topic == "/r2/status":
+                        offline.append(item.message)
+        finally:
+            await client.close()
+        assert not view.done()
+    for name in ("r1", "r2"):
+        published = [(p["x"], p["y"], p["theta"]) for p in watching.on(topics.pose(name))]
+        shown = on(received, f"/{name}/pose")
+        assert shown
+        assert all(pose.frame_id == "map" for pose in shown)
+        for pose in shown:
+            position, orientation = pose.pose.position, pose.pose.orientation
+            assert any(
+                (x, y) == (position.x, position.y) and math.isclose(orientation.z, math.sin(0.5 * th), abs_tol=1e-12)
+                for x, y, th in published
+            ), f"{name}: a pose in the view that it never published"
+        assert len({(p.pose.position.x, p.pose.orientation.z) for p in shown}) > 1, f"{name} did not move"
+    frames = {t.child_frame_id: t for message in on(received, "/tf") for t in message.transforms}
+    assert set(frames) == {"r1/base_link", "r2/base_link"}
+    assert all(t.parent_frame_id == "map" for t in frames.values())
+    r1_positions = {(p["x"], p["y"]) for p in watching.on(topics.pose("r1"))}
+    assert (frames["r1/base_link"].translation.x, frames["r1/base_link"].translation.y) in r1_positions
+    assert all(e.entities[0].frame_id == "map" and e.entities[0].lines for e in on(received, "/r1/pose/ellipse"))
+    status = on(received, "/r1/status")[-1]
+    assert (status["state"], status["online"], status["stop_held"], status["robot_id"]) == ("online", True, False, "r1")
+    assert status["status"]["robot_id"] == "r1"
+    assert (offline[-1]["state"], offline[-1]["online"]) == ("offline", False)
+
+
+def test_the_command_says_when_the_broker_cannot_be_reached(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["fleet", "view", "--broker", "mqtt://127.0.0.1:1", "--port", "0", "--for", "5"]) == 1
+    error = capsys.readouterr().err
+    assert error.startswith("robotd fleet view: broker mqtt://127.0.0.1:1:")
+    assert len(error.strip().splitlines()) == 1
