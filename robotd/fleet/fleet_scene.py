@@ -93,9 +93,10 @@ class FleetScene:
             self.malformed += 1
             return
         t_ns = self._clock_ns()
-        if leaf == "pose":
-            self._pose(name, message, t_ns)
-        else:
+        if leaf == "pose" and not self._pose(name, message, t_ns):
+            self.skipped += 1
+            return
+        if leaf == "status":
             log_json(self._channels(name).status, status_summary(name, message), t_ns)
         self.messages += 1
 
@@ -113,16 +114,15 @@ class FleetScene:
             self.robots[name] = channels
         return channels
 
-    def _pose(self, name: str, message: dict[str, Any], t_ns: int) -> None:
+    def _pose(self, name: str, message: dict[str, Any], t_ns: int) -> bool:
+        """Publish the pose, its ellipse, the robot's frame and trail; False when the pose cannot be drawn."""
         try:
             pose = (float(message["x"]), float(message["y"]), float(message["theta"]))
             cov = [float(value) for value in message["covariance"]]
         except (KeyError, TypeError, ValueError):
-            self.skipped += 1
-            return
+            return False
         if len(cov) != 9 or not all(math.isfinite(value) for value in (*pose, *cov)):
-            self.skipped += 1
-            return
+            return False
         channels = self._channels(name)
         channels.pose.log(scene.pose_in_frame(t_ns, pose), log_time=t_ns)
         channels.ellipse.log(scene.ellipse(t_ns, (pose[0], pose[1]), cov), log_time=t_ns)
@@ -135,6 +135,7 @@ class FleetScene:
         if t >= channels.next_trail:
             channels.next_trail = t + self.trail_period_s
             channels.trail.log(scene.trail(t_ns, channels.poses.points()), log_time=t_ns)
+        return True
 
 
 def status_summary(name: str, status: dict[str, Any]) -> dict[str, Any]:

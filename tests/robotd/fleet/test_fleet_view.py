@@ -5,24 +5,28 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import shlex
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
+import foxglove
 import pytest
 from fleet_support import FleetDaemon, watcher
 from foxglove_client import FoxgloveClient, Received
 from inprocess_daemon import FakeEncoders, running
 
 from drivers.wheels.encoders import WheelTicks
-from robotd.cli import main
+from robotd.cli import build_parser, main
+from robotd.commands.fleet import run_view
 from robotd.fleet import topics
 from robotd.fleet.broker import OPERATOR, Broker
 from robotd.fleet.fleet_scene import FleetScene
 from robotd.fleet.operator import BrokerAddress
 from robotd.fleet.secrets import load_credentials
 from robotd.fleet.view import ViewServer, serve_fleet_view
+from robotd.tools.fleet_sim import VirtualFleet, how_to_watch
 
 ROBOT_TOPICS = ("pose", "pose/ellipse", "pose/trail", "status")
 
@@ -124,3 +128,34 @@ def test_the_command_says_when_the_broker_cannot_be_reached(capsys: pytest.Captu
     error = capsys.readouterr().err
     assert error.startswith("robotd fleet view: broker mqtt://127.0.0.1:1:")
     assert len(error.strip().splitlines()) == 1
+
+
+def test_the_virtual_fleet_says_how_to_open_the_view(tmp_path: Path) -> None:
+    fleet = VirtualFleet(
+        "mqtt://127.0.0.1:41234",
+        tmp_path / "operator.credentials",
+        tmp_path / "fleet.key",
+        ("r1", "r2"),
+        (),
+        None,  # type: ignore[arg-type]
+    )
+    lines = [line for line in how_to_watch(fleet, tmp_path).splitlines() if "robotd fleet view" in line]
+    assert len(lines) == 1
+    command = shlex.split(lines[0].split(":", 1)[1].split("(")[0])
+    args = build_parser().parse_args(command[1:])
+    assert args.handler is run_view
+    assert (args.broker, args.credentials) == ("mqtt://127.0.0.1:41234", str(tmp_path / "operator.credentials"))
+
+
+def test_bad_messages_are_counted_and_draw_nothing() -> None:
+    fleet = FleetScene(foxglove.Context())
+    fleet.take(topics.pose("r1"), b"not json")
+    fleet.take(topics.pose("r1"), b"[1, 2]")
+    fleet.take(topics.pose("r1"), b'{"x": 1.0, "y": "two", "theta": 0.0, "covariance": [0, 0, 0, 0, 0, 0, 0, 0, 0]}')
+    fleet.take(topics.pose("r1"), b'{"x": NaN, "y": 0.0, "theta": 0.0, "covariance": [0, 0, 0, 0, 0, 0, 0, 0, 0]}')
+    fleet.take(topics.FLEET_STOP, b'{"action": "stop"}')  # an order: not a robot
+    fleet.take(topics.status("r2"), b"")  # a deleted retained status
+    assert (fleet.malformed, fleet.skipped, fleet.messages) == (2, 2, 0)
+    assert fleet.robots == {}
+    fleet.take(topics.pose("r1"), b'{"x": 1.0, "y": 2.0, "theta": 0.5, "covariance": [1, 0, 0, 0, 1, 0, 0, 0, 1]}')
+    assert (fleet.messages, list(fleet.robots)) == (1, ["r1"])
