@@ -8,6 +8,7 @@ Topic | schema | what
 `/<id>/pose/ellipse` | foxglove.SceneUpdate | the 95 % covariance ellipse of its position
 `/<id>/pose/trail` | foxglove.PosesInFrame | where it has been (the last `trail_s` seconds)
 `/<id>/status` | JSON | `state` (online/offline), `stop_held`, `faults`, and its retained status as the broker has it
+`/<id>/label` | foxglove.SceneUpdate | its name and what is wrong (offline, STOP, fault kinds) above `<id>/base_link`
 `/tf` | foxglove.FrameTransforms | map -> `<id>/base_link` for every robot
 
 Messages are stamped with the viewer's receive time: the robots' own clocks are other machines' clocks, and one time
@@ -54,6 +55,7 @@ class RobotChannels:
     ellipse: SceneUpdateChannel
     trail: PosesInFrameChannel
     status: foxglove.Channel
+    label: SceneUpdateChannel
     poses: Trail
     next_trail: float = -math.inf
 
@@ -97,7 +99,11 @@ class FleetScene:
             self.skipped += 1
             return
         if leaf == "status":
-            log_json(self._channels(name).status, status_summary(name, message), t_ns)
+            summary = status_summary(name, message)
+            channels = self._channels(name)
+            log_json(channels.status, summary, t_ns)
+            text, rgba = label_of(summary)
+            channels.label.log(scene.label(t_ns, "name", text, base_link(name), rgba), log_time=t_ns)
         self.messages += 1
 
     def _channels(self, name: str) -> RobotChannels:
@@ -109,6 +115,7 @@ class FleetScene:
                 ellipse=SceneUpdateChannel(robot_topic(name, "pose/ellipse"), context=context),
                 trail=PosesInFrameChannel(robot_topic(name, "pose/trail"), context=context),
                 status=foxglove.Channel(robot_topic(name, "status"), message_encoding="json", context=context),
+                label=SceneUpdateChannel(robot_topic(name, "label"), context=context),
                 poses=Trail(self.trail_s),
             )
             self.robots[name] = channels
@@ -150,3 +157,20 @@ def status_summary(name: str, status: dict[str, Any]) -> dict[str, Any]:
         "faults": [str(f.get("kind", "?")) for f in faults if isinstance(f, dict)] if isinstance(faults, list) else [],
         "status": status,
     }
+
+
+OFFLINE_COLOUR = (0.5, 0.5, 0.5, 0.8)
+ALARM_COLOUR = (0.95, 0.15, 0.1, 1.0)
+
+
+def label_of(summary: dict[str, Any]) -> tuple[str, tuple[float, float, float, float]]:
+    """A robot's label and its colour from its status summary: grey offline, red stopped or faulty."""
+    words = [str(summary["robot_id"])]
+    if not summary["online"]:
+        words.append(str(summary["state"]))
+    if summary["stop_held"]:
+        words.append("STOP")
+    words.extend(summary["faults"])
+    if not summary["online"]:
+        return " ".join(words), OFFLINE_COLOUR
+    return " ".join(words), ALARM_COLOUR if len(words) > 1 else scene.FUSED_COLOUR

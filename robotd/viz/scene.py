@@ -38,6 +38,7 @@ FIX_LIFETIME_S = 30.0  # a fix stays in the scene this long: the last few second
 FIX_DIAMETER_M = 0.06
 BEACON_DIAMETER_M = 0.15
 ELLIPSE_THICKNESS_M = 0.01
+LABEL_HEIGHT_M = 0.3
 
 VERDICT_COLOURS: dict[str, tuple[float, float, float, float]] = {
     "accepted": (0.1, 0.75, 0.2, 0.9),  # green: fused
@@ -127,6 +128,19 @@ def fix_marker(t_ns: int, number: int, at_xy: tuple[float, float], verdict: str,
         else [],  # only the fixes worth a look are labelled: a label per accepted fix would hide the scene
     )
     return SceneUpdate(entities=[entity])
+
+
+def label(
+    t_ns: int, entity_id: str, text: str, frame: str, rgba: tuple[float, float, float, float] = FUSED_COLOUR
+) -> SceneUpdate:
+    """A text facing the viewer LABEL_HEIGHT_M above the origin of `frame` (it moves with the frame)."""
+    at = Pose(position=Vector3(x=0.0, y=0.0, z=LABEL_HEIGHT_M), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
+    text_primitive = TextPrimitive(
+        pose=at, billboard=True, font_size=14.0, scale_invariant=True, color=_colour(rgba), text=text
+    )
+    return SceneUpdate(
+        entities=[SceneEntity(timestamp=stamp(t_ns), frame_id=frame, id=entity_id, texts=[text_primitive])]
+    )
 
 
 def beacons(t_ns: int, stationary: Iterable[tuple[int, float, float, float, bool]]) -> SceneUpdate:

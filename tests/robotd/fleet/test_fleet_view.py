@@ -22,13 +22,14 @@ from robotd.cli import build_parser, main
 from robotd.commands.fleet import run_view
 from robotd.fleet import topics
 from robotd.fleet.broker import OPERATOR, Broker
-from robotd.fleet.fleet_scene import FleetScene
+from robotd.fleet.fleet_scene import ALARM_COLOUR, OFFLINE_COLOUR, FleetScene, label_of, status_summary
 from robotd.fleet.operator import BrokerAddress
 from robotd.fleet.secrets import load_credentials
 from robotd.fleet.view import ViewServer, serve_fleet_view
 from robotd.tools.fleet_sim import VirtualFleet, how_to_watch
+from robotd.viz import scene
 
-ROBOT_TOPICS = ("pose", "pose/ellipse", "pose/trail", "status")
+ROBOT_TOPICS = ("pose", "pose/ellipse", "pose/trail", "status", "label")
 
 
 @contextlib.asynccontextmanager
@@ -89,13 +90,18 @@ async def test_the_view_shows_each_robot_as_it_publishes_and_its_last_word(
                     await client.wait_for_topics({f"/{r}/{leaf}" for r in ("r1", "r2") for leaf in ROBOT_TOPICS})
                     subscribed = [f"/{r}/{leaf}" for r in ("r1", "r2") for leaf in ROBOT_TOPICS]
                     await client.subscribe([*subscribed, "/tf"])
-                    received = await client.collect({"/r1/pose": 10, "/r2/pose": 10, "/r1/status": 1, "/tf": 20})
+                    received = await client.collect(
+                        {"/r1/pose": 10, "/r2/pose": 10, "/r1/status": 1, "/r1/label": 1, "/tf": 20}
+                    )
                 # r2's link ends (a clean exit: `offline` as the last will would say)
                 offline: list[Any] = []
-                while not any(status["state"] == "offline" for status in offline):
+                labels: list[str] = []
+                while "r2 offline" not in labels:
                     item = await client.receive()
                     if item.topic == "/r2/status":
                         offline.append(item.message)
+                    elif item.topic == "/r2/label":
+                        labels.extend(entity.texts[0].text for entity in item.message.entities)
         finally:
             await client.close()
         assert not view.done()
@@ -121,6 +127,8 @@ async def test_the_view_shows_each_robot_as_it_publishes_and_its_last_word(
     assert (status["state"], status["online"], status["stop_held"], status["robot_id"]) == ("online", True, False, "r1")
     assert status["status"]["robot_id"] == "r1"
     assert (offline[-1]["state"], offline[-1]["online"]) == ("offline", False)
+    (r1_label,) = on(received, "/r1/label")[-1].entities
+    assert (r1_label.frame_id, r1_label.texts[0].text) == ("r1/base_link", "r1")
 
 
 def test_the_command_says_when_the_broker_cannot_be_reached(capsys: pytest.CaptureFixture[str]) -> None:
@@ -182,3 +190,10 @@ async def test_the_view_keeps_serving_through_a_broker_outage_and_follows_again(
         finally:
             await client.close()
         assert not view.done()
+
+
+def test_a_label_says_what_is_wrong() -> None:
+    online = {"state": "online", "robot_id": "r1", "stop": {"held": True}, "faults": [{"kind": "stall"}]}
+    assert label_of(status_summary("r1", online)) == ("r1 STOP stall", ALARM_COLOUR)
+    assert label_of(status_summary("r1", {"state": "online"})) == ("r1", scene.FUSED_COLOUR)
+    assert label_of(status_summary("r1", {"state": "offline", "robot_id": "r1"})) == ("r1 offline", OFFLINE_COLOUR)
