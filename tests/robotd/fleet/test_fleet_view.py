@@ -197,3 +197,13 @@ def test_a_label_says_what_is_wrong() -> None:
     assert label_of(status_summary("r1", online)) == ("r1 STOP stall", ALARM_COLOUR)
     assert label_of(status_summary("r1", {"state": "online"})) == ("r1", scene.FUSED_COLOUR)
     assert label_of(status_summary("r1", {"state": "offline", "robot_id": "r1"})) == ("r1 offline", OFFLINE_COLOUR)
+
+
+def test_the_command_says_where_to_connect(broker: Broker, capsys: pytest.CaptureFixture[str]) -> None:
+    setup = broker.setup
+    credentials = str(setup.credentials_file(OPERATOR))
+    argv = ["fleet", "view", "--broker", setup.url, "--credentials", credentials, "--port", "0", "--for", "0.5"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"robotd fleet view: {setup.url} served on ws://127.0.0.1:")
+    assert int(out.split("ws://127.0.0.1:")[1].split()[0]) > 0  # the free port the server took, not 0
