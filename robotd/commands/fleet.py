@@ -36,6 +36,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         target.add_argument("--all", action="store_true", help="the whole fleet (robotd/fleet/stop)")
         order.add_argument("--key", default=os.environ.get(ENV_KEY), help=f"the fleet key file (default ${ENV_KEY})")
         order.set_defaults(handler=run_order, order=name)
+    view = actions.add_parser(
+        "view", help="serve every robot on the broker to Foxglove (WebSocket; poses, ellipses, trails, frames, status)"
+    )
+    _broker_options(view, suppress=True)
+    view.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback: 127.0.0.1)")
+    view.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765, Foxglove's; 0: a free one)")
+    view.add_argument("--trail", type=float, default=120.0, metavar="S", help="trail length in seconds (default 120)")
+    view.add_argument("--for", dest="duration", type=float, default=argparse.SUPPRESS, metavar="S", help="for S s")
+    view.set_defaults(handler=run_view)
 
 
 def _broker_options(parser: argparse.ArgumentParser, *, suppress: bool = False) -> None:
@@ -119,4 +128,33 @@ def run_order(args: argparse.Namespace) -> int:
         print(f"robotd fleet {args.order}: broker {args.broker}: {error}", file=sys.stderr)
         return 1
     print(f"robotd fleet: {action.value} published (retained) to {', '.join(sent)}")
+    return 0
+
+
+def run_view(args: argparse.Namespace) -> int:
+    """Serve the fleet to Foxglove until Ctrl-C (or --for S); says where to connect."""
+    import aiomqtt  # noqa: PLC0415
+
+    from robotd.fleet.view import ViewServer, serve_fleet_view  # noqa: PLC0415
+
+    connection = _connection(args)
+    if connection is None:
+        return 2
+    address, credentials = connection
+
+    def ready(port: int) -> None:
+        print(f"robotd fleet view: {address} served on ws://{args.host}:{port} (Foxglove: Open connection)", flush=True)
+
+    server = ViewServer(args.host, args.port, args.trail)
+    try:
+        asyncio.run(serve_fleet_view(address, credentials, server, duration_s=args.duration, ca_file=args.ca_file,
+                                     on_ready=ready))  # fmt: skip
+    except aiomqtt.MqttError as error:
+        print(f"robotd fleet view: broker {args.broker}: {error}", file=sys.stderr)
+        return 1
+    except RuntimeError as error:  # the SDK's reason the port cannot be served
+        print(f"robotd fleet view: cannot serve on {args.host}:{args.port}: {error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 0
     return 0

@@ -115,11 +115,13 @@ async def watch(
     duration_s: float | None,
     refresh_s: float = 0.5,
     in_place: bool = True,
-    write: Callable[[str], object] = sys.stdout.write,
+    write: Callable[[str], object] | None = None,
     ca_file: str | None = None,
 ) -> FleetView:
     """Show the table every `refresh_s` (redrawn in place on a terminal) for `duration_s` or until cancelled."""
     view = FleetView()
+    if write is None:  # the stdout of now, not of when this module was imported (a test's capture, a redirection)
+        write = sys.stdout.write
     async with connect(address, credentials, ca_file) as client:
         await client.subscribe([(topics.ALL_POSES, 0), (topics.ALL_STATUSES, 1), (topics.ALL_STOPS, 1)])
 

@@ -155,6 +155,20 @@ def virtual_fleet(
             children.stop_all()
 
 
+def how_to_watch(fleet: VirtualFleet, out: Path) -> str:
+    """What `robotd sim --robots N` prints: the broker, the operator's files, the commands to watch, view and stop."""
+    operator = f"--broker {fleet.broker_url} --credentials {fleet.operator_credentials}"
+    return "\n".join([
+        f"robotd sim: {len(fleet.robot_ids)} virtual robots ({', '.join(fleet.robot_ids)}) on {fleet.broker_url}",
+        f"  credentials: {fleet.operator_credentials}",
+        f"  fleet key:   {fleet.key_file}",
+        f"  watch:       robotd fleet {operator}",
+        f"  Foxglove:    robotd fleet view {operator}    (then open ws://127.0.0.1:8765)",
+        f"  stop all:    robotd fleet stop --all {operator} --key {fleet.key_file}",
+        f"  logs:        {out}/rK/daemon.log, {out}/rK/vhw.log, {out}/broker/mosquitto.log",
+    ])  # fmt: skip
+
+
 def run_fleet_sim(base: Path, out: Path, count: int, seed: int | None) -> int:
     """`robotd sim --robots N` until a stop signal; prints what a viewer needs."""
     from robotd.tools.demo import StopRequested, stop_signals  # noqa: PLC0415
@@ -162,13 +176,7 @@ def run_fleet_sim(base: Path, out: Path, count: int, seed: int | None) -> int:
     out = out.resolve()
     try:
         with stop_signals(), virtual_fleet(base, out, count, 1 if seed is None else seed) as (fleet, children):
-            print(f"robotd sim: {count} virtual robots ({', '.join(fleet.robot_ids)}) on {fleet.broker_url}")
-            print(f"  credentials: {fleet.operator_credentials}")
-            print(f"  fleet key:   {fleet.key_file}")
-            print(f"  watch:       robotd fleet --broker {fleet.broker_url} --credentials {fleet.operator_credentials}")
-            print(f"  stop all:    robotd fleet stop --all --broker {fleet.broker_url} --credentials "
-                  f"{fleet.operator_credentials} --key {fleet.key_file}")  # fmt: skip
-            print(f"  logs:        {out}/rK/daemon.log, {out}/rK/vhw.log, {out}/broker/mosquitto.log")
+            print(how_to_watch(fleet, out))
             print("Ctrl-C stops them all.", flush=True)
             while all(proc.poll() is None for proc in children.procs):
                 time.sleep(0.5)

@@ -38,6 +38,7 @@ FIX_LIFETIME_S = 30.0  # a fix stays in the scene this long: the last few second
 FIX_DIAMETER_M = 0.06
 BEACON_DIAMETER_M = 0.15
 ELLIPSE_THICKNESS_M = 0.01
+LABEL_HEIGHT_M = 0.3
 
 VERDICT_COLOURS: dict[str, tuple[float, float, float, float]] = {
     "accepted": (0.1, 0.75, 0.2, 0.9),  # green: fused
@@ -129,6 +130,19 @@ def fix_marker(t_ns: int, number: int, at_xy: tuple[float, float], verdict: str,
     return SceneUpdate(entities=[entity])
 
 
+def label(
+    t_ns: int, entity_id: str, text: str, frame: str, rgba: tuple[float, float, float, float] = FUSED_COLOUR
+) -> SceneUpdate:
+    """A text facing the viewer LABEL_HEIGHT_M above the origin of `frame` (it moves with the frame)."""
+    at = Pose(position=Vector3(x=0.0, y=0.0, z=LABEL_HEIGHT_M), orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
+    text_primitive = TextPrimitive(
+        pose=at, billboard=True, font_size=14.0, scale_invariant=True, color=_colour(rgba), text=text
+    )
+    return SceneUpdate(
+        entities=[SceneEntity(timestamp=stamp(t_ns), frame_id=frame, id=entity_id, texts=[text_primitive])]
+    )
+
+
 def beacons(t_ns: int, stationary: Iterable[tuple[int, float, float, float, bool]]) -> SceneUpdate:
     """The stationary beacons of the Marvelmind map (address, x, y, z, applicable), labelled with their address."""
     entities = []
@@ -160,15 +174,15 @@ def beacons(t_ns: int, stationary: Iterable[tuple[int, float, float, float, bool
 def transforms(t_ns: int, correction: Pose2, odom: Pose2, lever_arm: tuple[float, float]) -> FrameTransforms:
     """map -> odom (the filter's correction), odom -> base_link (dead reckoning), base_link -> beacon (lever arm)."""
     edges = ((MAP, ODOM, correction), (ODOM, BASE_LINK, odom), (BASE_LINK, BEACON, (lever_arm[0], lever_arm[1], 0.0)))
-    return FrameTransforms(
-        transforms=[
-            FrameTransform(
-                timestamp=stamp(t_ns),
-                parent_frame_id=parent,
-                child_frame_id=child,
-                translation=Vector3(x=p[0], y=p[1], z=0.0),
-                rotation=_rotation(p[2]),
-            )
-            for parent, child, p in edges
-        ]
+    return FrameTransforms(transforms=[frame_transform(t_ns, parent, child, p) for parent, child, p in edges])
+
+
+def frame_transform(t_ns: int, parent: str, child: str, pose: Pose2) -> FrameTransform:
+    """The transform that places frame `child` at `pose` in frame `parent`."""
+    return FrameTransform(
+        timestamp=stamp(t_ns),
+        parent_frame_id=parent,
+        child_frame_id=child,
+        translation=Vector3(x=pose[0], y=pose[1], z=0.0),
+        rotation=_rotation(pose[2]),
     )
