@@ -411,7 +411,7 @@ class Daemon:
         next_status = self.clock()
         loop = asyncio.get_running_loop()
         while True:
-            if self.fleet is None and self.viewer is None:
+            if not self._pose_subscribers_besides_clients:
                 await self.pose_server.wait_for_clients()  # nobody listening: nothing to wake for
             # on the shared grid: at 20 Hz every other wake-up is the control loop's at 50 Hz
             await sleep_until(next_tick(loop.time(), period))
@@ -424,8 +424,13 @@ class Daemon:
                 if self.viewer is not None:
                     self.viewer.status(status)
 
+    @property
+    def _pose_subscribers_besides_clients(self) -> bool:
+        """The fleet link or the live view takes every pose, pose-socket clients or not."""
+        return self.fleet is not None or self.viewer is not None
+
     def _publish_pose(self) -> None:
-        if not self.pose_server.clients and self.fleet is None and self.viewer is None:
+        if not self.pose_server.clients and not self._pose_subscribers_besides_clients:
             return  # the filter's estimate at a fix is for readers: without one, it is not worth building
         now = self.clock()
         estimate = self.estimator.pose(now)
