@@ -309,10 +309,17 @@ class EkfConfig:
     )
     adaptive_ips_noise: bool = setting(
         True,
-        "Estimate the IPS noise from the median of recent innovations (robust to outliers), never below "
-        "ips_sigma_m nor above ips_sigma_max_m.",
+        "Estimate the IPS noise from the median of recent innovations (robust to outliers), never above "
+        "ips_sigma_max_m, nor below ips_sigma_m until the fixes have been judged (the first window of driving tells "
+        "whether their errors persist from fix to fix), nor below ips_sigma_min_m after.",
     )
     ips_sigma_max_m: float = setting(0.3, "Largest IPS noise the adaptive estimate may reach.", positive)
+    ips_sigma_min_m: float = setting(
+        0.005,
+        "Smallest IPS noise the adaptive estimate may reach once the fixes have been judged: an IPS quieter than "
+        "configured is then trusted for what it is.",
+        positive,
+    )
     recovery_min_s: float = setting(
         1.5,
         "Fixes rejected for at least this long that agree with each other re-seed the position (lock-out recovery); "

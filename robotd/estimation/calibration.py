@@ -123,6 +123,7 @@ class Calibrator:
         self.fix_correlated_var = start.fix_correlated_var
         self.fix_correlation = start.fix_correlation
         self._data_correlation = 0.0  # of the residuals of each window's fit on its data alone, smoothed
+        self.judged = start.windows > 0  # whether the fixes' correlation is known (a window, or judge_fixes)
         self._fitted_at = math.nan
         self._clamp()
         self.current = self._snapshot()
@@ -171,6 +172,22 @@ class Calibrator:
         changed = self._fit(t0, ends, dts, us, inside)
         self.current = self._snapshot()
         return changed
+
+    def judge_fixes(self, count: int, variance: float, correlation: float) -> bool:
+        """An early judgement of the fixes from a shorter fit (the heading's window: `count` residuals of `variance`
+        per axis and lag-one `correlation`), taken only before the first window; returns whether it was taken.
+
+        Until a window has judged the fixes, a shared error among them looks like their agreement; heading fits come
+        sooner, each newer one (more travel) replaces the one before, and the first window replaces what they say.
+        """
+        if self.windows:
+            return False
+        self.judged = True
+        beyond_chance = correlation > 2.0 / math.sqrt(max(count, 1))
+        self.fix_correlation = correlation if beyond_chance else 0.0
+        self.fix_correlated_var = variance * correlation if beyond_chance else 0.0
+        self.current = self._snapshot()
+        return True
 
     # --- estimate ---------------------------------------------------------------------------------------
 
@@ -248,6 +265,7 @@ class Calibrator:
         self.fix_correlated_var += (correlated - self.fix_correlated_var) * smoothing
         self.fix_correlation += ((rho if beyond_chance else 0.0) - self.fix_correlation) * smoothing
         self.windows += 1
+        self.judged = True
         # the fixes' correlation is the installation's (anchors, walls), not one window's: judged over the windows
         data_rho = _data_correlation(path, np.concatenate([nuisance, cal]), stated, timed, zs, keep)
         self._data_correlation += (data_rho - self._data_correlation) * smoothing

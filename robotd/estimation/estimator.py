@@ -136,6 +136,8 @@ class Estimator:
             0,
         )
         self._fix_gate = FixGate(c, self.counters, self.modes)
+        if self._calibrator is not None and self._calibrator.judged:
+            self._fix_gate.trust_quieter_fixes()  # a saved calibration has judged this installation's fixes
 
     # --- inputs -----------------------------------------------------------------------------------
 
@@ -285,6 +287,7 @@ class Estimator:
             return
         calibration = self._calibration = calibrator.current
         self.counters["calibration_windows"] += 1
+        self._fix_gate.trust_quieter_fixes()
         self._predictor.scale = (calibration.kx, calibration.ky, calibration.kw)
         self._newest = None  # states carried with the old scales
 
@@ -341,6 +344,11 @@ class Estimator:
         fit = self._aligner.check(self._fix_gate.r, now_t, now_pose, dist, whole=not self.modes.heading_known)
         if fit is None:
             return
+        calibrator = self._calibrator
+        if calibrator is not None and calibrator.judge_fixes(*fit.fixes):
+            # the first judgement of the fixes, a window before the calibration's: fuse them for what they are worth
+            self._calibration = calibrator.current
+            self._fix_gate.trust_quieter_fixes()
         _, _, theta, p = self._state_at_newest_step()
         evidence = self._heading_check.evidence(fit, theta, p[5], self.modes.heading)
         if evidence is not None and self.modes.on_evidence(evidence):

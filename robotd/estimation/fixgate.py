@@ -7,7 +7,9 @@
   innovations), the position is re-seeded on them (the robot was carried, or the filter drifted); one consistent
   burst of outliers is too short to do that.
 - The IPS noise variance is estimated from the median of recent innovations (robust to outliers), less what the
-  prediction accounts for, between ips_sigma_m^2 and ips_sigma_max_m^2.
+  prediction accounts for, up to ips_sigma_max_m^2; at least ips_sigma_m^2 (the configured prior) until the fixes
+  have been judged (`trust_quieter_fixes`), at least ips_sigma_min_m^2 after: consecutive fixes whose errors persist
+  agree with each other, so their innovations alone would make a correlated IPS look quieter than it is.
 """
 
 from __future__ import annotations
@@ -94,6 +96,10 @@ class FixGate:
         dx = sorted(e[1] for e in recent)[len(recent) // 2]
         dy = sorted(e[2] for e in recent)[len(recent) // 2]
         return dx, dy
+
+    def trust_quieter_fixes(self) -> None:
+        """The fixes have been judged (their correlation is known): the noise estimate may go below the configured."""
+        self.r_floor = min(self.config.ips_sigma_min_m, self.config.ips_sigma_m) ** 2
 
     def forget(self) -> None:
         """Drop the rejected fixes and the innovations: what they were measured against is gone."""

@@ -17,8 +17,16 @@ from robotd.estimation.modes import HeadingEvidence, HeadingMode
 LN4 = 2.0 * math.log(2.0)  # median of a chi-square with 2 dof: |nu|^2 / sigma^2 has this median
 MAX_POINTS = 400  # a robot standing still must not grow a window forever
 MIN_REALIGN_RAD = 0.35  # smaller heading errors are the EKF's own business: it corrects them from fixes in motion
-MAX_FIT_SIGMA_RAD = 0.15  # a fit less certain than this decides nothing
+MAX_FIT_SIGMA_RAD = 0.15  # a fit less certain than this decides nothing about a heading the filter already has
 FIT_SPACING = 0.25  # of the window's travel between two fits (at 40, 65, 90 and 100 %)
+
+
+class FixSpread(NamedTuple):
+    """The residuals of a rotation fit: their number, noise variance per axis and lag-one correlation (0: white)."""
+
+    residuals: int
+    variance: float
+    correlation: float
 
 
 class RotationFit(NamedTuple):
@@ -33,6 +41,7 @@ class RotationFit(NamedTuple):
     ty: float
     window_odo: tuple[float, float, float]
     window: int  # which window the fit is of (successive windows have successive numbers)
+    fixes: FixSpread  # what the fit's residuals say of the fixes
 
 
 class HeadingAligner:
@@ -119,8 +128,8 @@ class HeadingAligner:
             self.restart(now_t, now, dist)
         if fit is None:
             return None
-        rotation, sigma, tx, ty = fit
-        return RotationFit(rotation, sigma, tx, ty, odo, window)
+        rotation, sigma, tx, ty, spread = fit
+        return RotationFit(rotation, sigma, tx, ty, odo, window, spread)
 
 
 class HeadingCheck:
@@ -139,11 +148,12 @@ class HeadingCheck:
         filter_start = wrap_angle(filter_theta - fit.window_odo[2])
         signed = wrap_angle(fit.rotation - filter_start)
         sigma = fit.sigma
+        if heading is HeadingMode.UNKNOWN:
+            # any fit is better than a heading not known at all: the filter takes it with the fit's own variance
+            self.suspect = None
+            return HeadingEvidence.WHOLE_WINDOW
         if sigma > MAX_FIT_SIGMA_RAD:
             return None
-        if heading is HeadingMode.UNKNOWN:
-            self.suspect = None
-            return HeadingEvidence.WHOLE_WINDOW  # the first trustworthy window gives the heading that was unknown
         spread = math.sqrt(sigma * sigma + filter_var)
         if abs(signed) <= max(4.0 * spread, MIN_REALIGN_RAD):
             if abs(signed) <= 3.0 * spread:
@@ -183,21 +193,22 @@ def fit_rotation(oxs: list[float], oys: list[float], zxs: list[float], zys: list
 
 def trimmed_rotation_fit(
     oxs: list[float], oys: list[float], zxs: list[float], zys: list[float], tolerance: float
-) -> tuple[float, float, float, float] | None:
+) -> tuple[float, float, float, float, FixSpread] | None:
     """fit_rotation of the odometry track (oxs, oys) onto the fixes (zxs, zys) with outliers trimmed, and how certain
     its rotation is.
 
-    Returns (rotation, its standard deviation, tx, ty) or None when the track is too short or too inconsistent.
+    Returns (rotation, its standard deviation, tx, ty, the residuals' spread) or None when the track is too short or
+    too inconsistent.
     """
     count = len(oxs)
     hypot = math.hypot
-    fitted_x, fitted_y = oxs, oys
+    fitted_x, fitted_y, fitted_zx, fitted_zy = oxs, oys, zxs, zys
     for _ in range(3):
         n = len(oxs)
         if n < 5:
             return None
         rotation, tx, ty = fit_rotation(oxs, oys, zxs, zys)
-        fitted_x, fitted_y = oxs, oys
+        fitted_x, fitted_y, fitted_zx, fitted_zy = oxs, oys, zxs, zys
         c, s = math.cos(rotation), math.sin(rotation)
         residuals = [
             hypot(pzx - (tx + pox * c - poy * s), pzy - (ty + pox * s + poy * c))
@@ -220,10 +231,28 @@ def trimmed_rotation_fit(
     if spread <= 0.0:
         return None
     noise = max(median / math.sqrt(LN4), 1e-3)
-    sigma = noise / math.sqrt(spread)
+    rho = _lag_one_correlation(fitted_x, fitted_y, fitted_zx, fitted_zy, (rotation, tx, ty))
+    # residuals that persist from fix to fix (a delay not yet learnt, multipath, odometry drift) are worth fewer
+    # independent ones, (1 - rho) / (1 + rho) each: the rotation is that much less certain (the AR(1) discount)
+    sigma = noise / math.sqrt(spread) * math.sqrt((1.0 + rho) / (1.0 - rho))
     if sigma > 0.5:
         return None
-    return rotation, sigma, tx, ty
+    return rotation, sigma, tx, ty, FixSpread(n, noise * noise, rho)
 
 
-__all__ = ["LN4", "HeadingAligner", "HeadingCheck", "RotationFit", "fit_rotation", "trimmed_rotation_fit"]
+def _lag_one_correlation(
+    oxs: list[float], oys: list[float], zxs: list[float], zys: list[float], fit: tuple[float, float, float]
+) -> float:
+    """The lag-one correlation of consecutive residuals (both axes) of the fit (rotation, tx, ty), within [0, 0.98]."""
+    rotation, tx, ty = fit
+    c, s = math.cos(rotation), math.sin(rotation)
+    ex = [pzx - (tx + pox * c - poy * s) for pox, poy, pzx in zip(oxs, oys, zxs, strict=True)]
+    ey = [pzy - (ty + pox * s + poy * c) for pox, poy, pzy in zip(oxs, oys, zys, strict=True)]
+    power = sum(a * a + b * b for a, b in zip(ex, ey, strict=True))
+    if len(ex) < 3 or power <= 0.0:
+        return 0.0
+    lagged = sum(ex[i] * ex[i - 1] + ey[i] * ey[i - 1] for i in range(1, len(ex)))
+    return min(max(lagged / power, 0.0), 0.98)
+
+
+__all__ = ["LN4", "FixSpread", "HeadingAligner", "HeadingCheck", "RotationFit", "fit_rotation", "trimmed_rotation_fit"]

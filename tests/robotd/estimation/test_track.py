@@ -16,6 +16,7 @@ from robotd.config.model import EkfConfig
 from robotd.estimation import ekf, estimator
 from robotd.estimation.estimator import Estimator
 from robotd.estimation.fixgate import FixGate
+from robotd.estimation.heading import LN4
 from robotd.estimation.history import Anchor, History, Predictor, State
 from robotd.estimation.modes import Modes
 from robotd.estimation.track import OdometryTrack
@@ -179,3 +180,22 @@ def test_a_long_outage_keeps_the_daemons_history_short_and_the_estimate_unchange
     assert math.isclose(a.x, b.x, abs_tol=1e-9)
     assert math.isclose(a.y, b.y, abs_tol=1e-9)
     assert all(math.isclose(u, v, rel_tol=1e-9, abs_tol=1e-15) for u, v in zip(a.cov, b.cov, strict=True))
+
+
+def test_the_noise_estimate_goes_below_the_configured_sigma_only_once_the_fixes_are_judged() -> None:
+    config = EkfConfig(ips_sigma_m=0.03, ips_sigma_min_m=0.005)
+    gate = FixGate(
+        config,
+        dict.fromkeys(("fixes_accepted", "fixes_rejected", "recoveries", "fixes_seeded"), 0),
+        Modes(heading_known=True),
+    )
+    quiet = 0.01  # innovations of a 1 cm IPS, whose median says so
+    for _ in range(40):
+        inn = ekf.Innovation(quiet * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)  # P = 0: S = R
+        gate._learn_noise(inn, gate.r)
+    assert gate.r == pytest.approx(0.03**2)  # the configured sigma is the prior until the fixes are judged
+    gate.trust_quieter_fixes()
+    for _ in range(40):
+        inn = ekf.Innovation(quiet * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)  # P = 0: S = R
+        gate._learn_noise(inn, gate.r)
+    assert gate.r == pytest.approx(quiet**2, rel=0.05)

@@ -26,6 +26,23 @@ def out() -> Iterator[Path]:
             os.kill(pid, signal.SIGKILL)
 
 
+def survivors(pids: list[int], out: Path) -> str:
+    """What a failure needs to say: each survivor's command line and state, and the tails of the logs."""
+    lines = []
+    for pid in pids:
+        try:
+            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            state = Path(f"/proc/{pid}/status").read_text().splitlines()[:3]
+        except OSError:
+            continue
+        lines.append(f"{pid}: {cmdline} {state}")
+    lines.extend(
+        f"--- {log.name}:\n" + "\n".join(log.read_text(errors="replace").splitlines()[-15:])
+        for log in sorted(out.glob("*.log"))
+    )
+    return "\n".join(lines)
+
+
 @pytest.mark.parametrize(
     ("signum", "to_the_group"),
     [
@@ -61,7 +78,8 @@ def test_the_children_die_with_a_sigkilled_sim(out: Path) -> None:
     assert len(children) == 2
     proc.kill()
     proc.wait(10)
-    assert wait_until_gone(str(out), timeout_s=30.0) == []
+    left = wait_until_gone(str(out), timeout_s=30.0)
+    assert left == [], survivors(left, out)
     # each child was told by the kernel and stopped as on SIGTERM: the daemon zeroed its motors on the way out
     assert "Traceback" not in (out / "daemon.log").read_text()
 

@@ -1,0 +1,61 @@
+"""The heading window's rotation fit: how certain it says it is, and what it tells of the fixes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from robotd.estimation.heading import MAX_FIT_SIGMA_RAD, FixSpread, HeadingCheck, RotationFit, trimmed_rotation_fit
+from robotd.estimation.modes import HeadingEvidence, HeadingMode
+
+
+def _fit_with(errors: npt.NDArray[np.float64], rotation: float = 0.3) -> tuple[float, float, float, float, FixSpread]:
+    """The fit of an arc of odometry points onto fixes: the arc turned by `rotation`, plus `errors`."""
+    n = len(errors)
+    s = np.linspace(0.0, 1.5, n)
+    ox, oy = s, 0.2 * s * s  # a gently curving window of 1.5 m
+    c, si = math.cos(rotation), math.sin(rotation)
+    zx, zy = ox * c - oy * si + errors[:, 0], ox * si + oy * c + errors[:, 1]
+    fit = trimmed_rotation_fit(ox.tolist(), oy.tolist(), zx.tolist(), zy.tolist(), 0.2)
+    assert fit is not None
+    return fit
+
+
+def _ar1(rng: np.random.Generator, n: int, rho: float, sigma: float) -> npt.NDArray[np.float64]:
+    errors = np.zeros((n, 2))
+    errors[0] = rng.normal(0.0, sigma, 2)
+    for k in range(1, n):
+        errors[k] = rho * errors[k - 1] + rng.normal(0.0, sigma * math.sqrt(1.0 - rho * rho), 2)
+    return errors
+
+
+def test_residuals_that_persist_from_fix_to_fix_make_the_rotation_as_uncertain_as_it_is() -> None:
+    rng = np.random.default_rng(7)
+    trials = 300
+    white_errors: list[float] = []
+    white_sigmas: list[float] = []
+    correlated_errors: list[float] = []
+    correlated_sigmas: list[float] = []
+    for _ in range(trials):
+        rotation, sigma, *_, spread = _fit_with(rng.normal(0.0, 0.03, (60, 2)))
+        white_errors.append(rotation - 0.3)
+        white_sigmas.append(sigma)
+        assert spread.correlation < 0.5
+        rotation, sigma, *_, spread = _fit_with(_ar1(rng, 60, 0.85, 0.03))
+        correlated_errors.append(rotation - 0.3)
+        correlated_sigmas.append(sigma)
+    # the stated sigma matches the rotation's real spread, for independent fixes and for correlated ones alike
+    for errors, sigmas in ((white_errors, white_sigmas), (correlated_errors, correlated_sigmas)):
+        z = np.asarray(errors) / np.asarray(sigmas)
+        assert 0.6 < float(np.std(z)) < 1.6
+    assert float(np.median(correlated_sigmas)) > 2.0 * float(np.median(white_sigmas))
+
+
+def test_a_heading_not_known_at_all_takes_even_an_uncertain_fit_one_already_known_does_not() -> None:
+    fit = RotationFit(1.0, 2.0 * MAX_FIT_SIGMA_RAD, 0.0, 0.0, (0.0, 0.0, 0.0), 1, FixSpread(60, 0.03**2, 0.9))
+    assert HeadingCheck().evidence(fit, 0.0, math.pi**2, HeadingMode.UNKNOWN) is HeadingEvidence.WHOLE_WINDOW
+    assert HeadingCheck().evidence(fit, 0.0, 0.01, HeadingMode.ALIGNED) is None
+    assert fit.sigma == pytest.approx(0.3)
