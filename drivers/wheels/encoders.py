@@ -202,15 +202,20 @@ class PigpioEncoders:
         """Re-anchor the tick map while the stream is up; when it breaks, reconnect with backoff."""
         backoff = Backoff(FIRST_RETRY_S, self._pigpiod.reconnect_max_s)
         while True:
+            # two tasks waited on by hand, not a TaskGroup: a cancellation arriving as the stream breaks (the daemon
+            # stopping while pigpiod goes too) must end this task, and 3.11's TaskGroup can drop it for the child's
+            # error, after which the task reconnected forever
+            watchers = (asyncio.ensure_future(self._until_lost()), asyncio.ensure_future(self._resync(link)))
             try:
-                async with asyncio.TaskGroup() as tasks:
-                    tasks.create_task(self._until_lost())
-                    tasks.create_task(self._resync(link))
-            except* (OSError, EOFError) as group:
-                log.warning(
-                    "encoder stream from pigpiod lost (%s): odometry degraded, reconnecting", group.exceptions[0]
-                )
+                done, _ = await asyncio.wait(watchers, return_when=asyncio.FIRST_COMPLETED)
+                for watcher in done:
+                    watcher.result()  # the error that broke the stream (a return would be a bug: neither returns)
+            except (OSError, EOFError) as error:
+                log.warning("encoder stream from pigpiod lost (%s): odometry degraded, reconnecting", error)
             finally:
+                for watcher in watchers:
+                    watcher.cancel()
+                await asyncio.wait(watchers)
                 self._read_available()  # what arrived before the break still counts
                 self._close_stream()
                 self._degraded = True

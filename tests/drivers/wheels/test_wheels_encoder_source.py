@@ -172,3 +172,18 @@ def test_the_per_edge_callback_baseline_counts_the_same() -> None:
             wait_until(lambda: baseline.decoder.counts == expected)
         finally:
             baseline.close()
+
+
+async def test_a_cancellation_that_comes_as_the_stream_breaks_ends_the_task() -> None:
+    async with VirtualPigpiod() as server:
+        source = PigpioEncoders(EncodersConfig(), PigpiodConfig(port=server.port, reconnect_max_s=0.1))
+        task = asyncio.create_task(source.run(lambda ticks: None))
+        await eventually(lambda: source.connected)
+        # what the daemon meets when it stops with the virtual robot: the stream breaks and the task is cancelled
+        # in the same loop pass
+        source._lost_error = OSError("pigpiod closed the notification socket")
+        source._lost.set()
+        task.cancel()
+        async with asyncio.timeout(20.0):  # (it reconnected forever before)
+            with pytest.raises(asyncio.CancelledError):
+                await task
