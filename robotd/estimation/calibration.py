@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from robotd.estimation.ar1 import beyond_chance, information, lag_one_correlation
 from robotd.estimation.heading import fit_rotation
 
 FloatArray = npt.NDArray[np.float64]
@@ -65,7 +66,7 @@ class Calibration:
     @property
     def fix_information(self) -> float:
         """What one fix is worth against an independent one: (1 - rho) / (1 + rho), the AR(1) discount."""
-        return _information(self.fix_correlation)
+        return information(self.fix_correlation)
 
     @property
     def wheel_radius_scale(self) -> float:
@@ -123,7 +124,7 @@ class Calibrator:
         self.fix_correlated_var = start.fix_correlated_var
         self.fix_correlation = start.fix_correlation
         self._data_correlation = 0.0  # of the residuals of each window's fit on its data alone, smoothed
-        self.judged = start.windows > 0  # whether the fixes' correlation is known (a window, or judge_fixes)
+        self._heading_judged = False  # judge_fixes has judged the fixes (before any window)
         self._fitted_at = math.nan
         self._clamp()
         self.current = self._snapshot()
@@ -173,6 +174,11 @@ class Calibrator:
         self.current = self._snapshot()
         return changed
 
+    @property
+    def judged(self) -> bool:
+        """Whether the fixes' correlation is known: a window (this run's, or a saved calibration's), or judge_fixes."""
+        return self.windows > 0 or self._heading_judged
+
     def judge_fixes(self, count: int, variance: float, correlation: float) -> bool:
         """An early judgement of the fixes from a shorter fit (the heading's window: `count` residuals of `variance`
         per axis and lag-one `correlation`), taken only before the first window; returns whether it was taken.
@@ -182,10 +188,9 @@ class Calibrator:
         """
         if self.windows:
             return False
-        self.judged = True
-        beyond_chance = correlation > 2.0 / math.sqrt(max(count, 1))
-        self.fix_correlation = correlation if beyond_chance else 0.0
-        self.fix_correlated_var = variance * correlation if beyond_chance else 0.0
+        self._heading_judged = True
+        self.fix_correlation = beyond_chance(correlation, count)
+        self.fix_correlated_var = variance * self.fix_correlation
         self.current = self._snapshot()
         return True
 
@@ -230,10 +235,10 @@ class Calibrator:
             keep = sq <= (TRIM_SIGMAS**2) * 2.0 * sigma2
             if keep.sum() < MIN_FIXES:
                 return False
-            rho = _lag_one_correlation(residual[keep], sigma2)
+            rho = lag_one_correlation(residual[keep], sigma2)
             # correlated fix errors (multipath, a wall's echo) carry less information than as many independent ones:
             # an AR(1) sequence of n values is worth n (1 - rho) / (1 + rho) independent ones
-            weight = _information(rho) / sigma2
+            weight = information(rho) / sigma2
             r = residual[keep].reshape(-1)
             j = jac[keep].reshape(-1, N_NUISANCE + N_CAL)
             a = j.T @ j * weight
@@ -259,17 +264,16 @@ class Calibrator:
         n = int(keep.sum())
         # what fusing many fixes cannot average away: their error shared from one fix to the next (smoothed)
         # (only a correlation beyond chance, 2 / sqrt(n): the path's own small deformations by slip are not the fixes')
-        beyond_chance = rho > 2.0 / math.sqrt(n)
-        correlated = sigma2 * rho if beyond_chance else 0.0
+        persistent = beyond_chance(rho, n)
+        correlated = sigma2 * persistent
         smoothing = 1.0 if self.windows == 0 else 0.3
         self.fix_correlated_var += (correlated - self.fix_correlated_var) * smoothing
-        self.fix_correlation += ((rho if beyond_chance else 0.0) - self.fix_correlation) * smoothing
+        self.fix_correlation += (persistent - self.fix_correlation) * smoothing
         self.windows += 1
-        self.judged = True
         # the fixes' correlation is the installation's (anchors, walls), not one window's: judged over the windows
         data_rho = _data_correlation(path, np.concatenate([nuisance, cal]), stated, timed, zs, keep)
         self._data_correlation += (data_rho - self._data_correlation) * smoothing
-        if n * _information(self._data_correlation) < MIN_INDEPENDENT_FIXES:
+        if n * information(self._data_correlation) < MIN_INDEPENDENT_FIXES:
             # too few independent fixes for the path's nine parameters: the fit would follow the fixes' shared error
             # (a wall's echo bends the path as a wrong scale would), so the window says nothing about the odometry
             return True
@@ -313,21 +317,7 @@ def _data_correlation(  # noqa: PLR0917 - the fit's arrays as they are
     step, *_ = np.linalg.lstsq(j, residual[keep].reshape(-1), rcond=None)
     after = residual[keep] - (j @ step).reshape(-1, 2)
     sigma2 = max(float(np.mean(after[:, 0] ** 2 + after[:, 1] ** 2)) / 2.0, 1e-12)
-    return _lag_one_correlation(after, sigma2)
-
-
-def _information(rho: float) -> float:
-    """An AR(1) sequence of n values of lag-one correlation rho is worth n (1 - rho) / (1 + rho) independent ones."""
-    return max((1.0 - rho) / (1.0 + rho), 0.02)
-
-
-def _lag_one_correlation(residual: FloatArray, sigma2: float) -> float:
-    """The correlation of consecutive fixes' residuals (both axes), within [0, 0.98]."""
-    if len(residual) < 3:
-        return 0.0
-    products = residual[1:, 0] * residual[:-1, 0] + residual[1:, 1] * residual[:-1, 1]
-    rho = float(np.mean(products)) / (2.0 * sigma2)
-    return min(max(rho, 0.0), 0.98)
+    return lag_one_correlation(after, sigma2)
 
 
 def _measured(stated: FloatArray, timed: npt.NDArray[np.bool_], cal: FloatArray) -> FloatArray:

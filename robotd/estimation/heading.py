@@ -11,6 +11,9 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numpy as np
+
+from robotd.estimation.ar1 import lag_one_correlation
 from robotd.estimation.ekf import wrap_angle
 from robotd.estimation.modes import HeadingEvidence, HeadingMode
 
@@ -202,18 +205,17 @@ def trimmed_rotation_fit(
     """
     count = len(oxs)
     hypot = math.hypot
-    fitted_x, fitted_y, fitted_zx, fitted_zy = oxs, oys, zxs, zys
+    fitted_x, fitted_y = oxs, oys
     for _ in range(3):
         n = len(oxs)
         if n < 5:
             return None
         rotation, tx, ty = fit_rotation(oxs, oys, zxs, zys)
-        fitted_x, fitted_y, fitted_zx, fitted_zy = oxs, oys, zxs, zys
+        fitted_x, fitted_y = oxs, oys
         c, s = math.cos(rotation), math.sin(rotation)
-        residuals = [
-            hypot(pzx - (tx + pox * c - poy * s), pzy - (ty + pox * s + poy * c))
-            for pox, poy, pzx, pzy in zip(oxs, oys, zxs, zys, strict=True)
-        ]
+        ex = [pzx - (tx + pox * c - poy * s) for pox, poy, pzx in zip(oxs, oys, zxs, strict=True)]
+        ey = [pzy - (ty + pox * s + poy * c) for pox, poy, pzy in zip(oxs, oys, zys, strict=True)]
+        residuals = [hypot(a, b) for a, b in zip(ex, ey, strict=True)]
         median = sorted(residuals)[n // 2]
         bound = max(3.0 * median, tolerance)
         keep = [i for i, e in enumerate(residuals) if e <= bound]
@@ -231,28 +233,15 @@ def trimmed_rotation_fit(
     if spread <= 0.0:
         return None
     noise = max(median / math.sqrt(LN4), 1e-3)
-    rho = _lag_one_correlation(fitted_x, fitted_y, fitted_zx, fitted_zy, (rotation, tx, ty))
+    # the fitted points' residuals (ex, ey of the last pass), normalised by their own power
+    power = sum(e * e for e in residuals)
+    rho = lag_one_correlation(np.column_stack((ex, ey)), power / (2.0 * (n - 1))) if power > 0.0 else 0.0
     # residuals that persist from fix to fix (a delay not yet learnt, multipath, odometry drift) are worth fewer
     # independent ones, (1 - rho) / (1 + rho) each: the rotation is that much less certain (the AR(1) discount)
     sigma = noise / math.sqrt(spread) * math.sqrt((1.0 + rho) / (1.0 - rho))
     if sigma > 0.5:
         return None
     return rotation, sigma, tx, ty, FixSpread(n, noise * noise, rho)
-
-
-def _lag_one_correlation(
-    oxs: list[float], oys: list[float], zxs: list[float], zys: list[float], fit: tuple[float, float, float]
-) -> float:
-    """The lag-one correlation of consecutive residuals (both axes) of the fit (rotation, tx, ty), within [0, 0.98]."""
-    rotation, tx, ty = fit
-    c, s = math.cos(rotation), math.sin(rotation)
-    ex = [pzx - (tx + pox * c - poy * s) for pox, poy, pzx in zip(oxs, oys, zxs, strict=True)]
-    ey = [pzy - (ty + pox * s + poy * c) for pox, poy, pzy in zip(oxs, oys, zys, strict=True)]
-    power = sum(a * a + b * b for a, b in zip(ex, ey, strict=True))
-    if len(ex) < 3 or power <= 0.0:
-        return 0.0
-    lagged = sum(ex[i] * ex[i - 1] + ey[i] * ey[i - 1] for i in range(1, len(ex)))
-    return min(max(lagged / power, 0.0), 0.98)
 
 
 __all__ = ["LN4", "FixSpread", "HeadingAligner", "HeadingCheck", "RotationFit", "fit_rotation", "trimmed_rotation_fit"]

@@ -6,8 +6,8 @@ import dataclasses
 
 import msgspec
 import numpy as np
-import numpy.typing as npt
 import pytest
+from fix_errors import ar1_errors
 from sim_logs import sim_config, simulated
 
 from robotd.config.model import RobotdConfig
@@ -124,15 +124,6 @@ def test_fixes_sharing_a_slowly_varying_error_do_not_move_the_scales_but_are_dis
     assert white.fix_correlation < 0.2
 
 
-def _ar1(rng: np.random.Generator, n: int, rho: float, sigma: float) -> npt.NDArray[np.float64]:
-    """n 2D errors of an AR(1) (first-order Gauss-Markov) sequence of per-axis deviation sigma."""
-    errors = np.zeros((n, 2))
-    errors[0] = rng.normal(0.0, sigma, 2)
-    for k in range(1, n):
-        errors[k] = rho * errors[k - 1] + rng.normal(0.0, sigma * np.sqrt(1.0 - rho * rho), 2)
-    return errors
-
-
 def test_a_heading_fit_judges_the_fixes_before_the_first_window_and_the_window_replaces_it() -> None:
     calibrator = Calibrator(Calibration(), CalibrationLimits(), (0.0, 0.0))
     assert not calibrator.judged
@@ -142,7 +133,7 @@ def test_a_heading_fit_judges_the_fixes_before_the_first_window_and_the_window_r
     assert calibrator.judge_fixes(100, 0.03**2, 0.1)  # a newer fit: within chance (2 / sqrt(100)), independent fixes
     assert calibrator.current.fix_correlation == 0.0
     assert calibrator.current.fix_correlated_var == 0.0
-    judged = _circle_drive(_ar1(np.random.default_rng(2), 800, 0.9, 0.1), 1.0)
+    judged = _circle_drive(ar1_errors(np.random.default_rng(2), 800, 0.9, 0.1), 1.0)
     assert judged.windows > 0
     after = Calibrator(judged, CalibrationLimits(), (0.0, 0.0))
     assert after.judged  # a saved calibration has judged its installation's fixes

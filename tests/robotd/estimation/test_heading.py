@@ -7,6 +7,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 import pytest
+from fix_errors import ar1_errors
 
 from robotd.estimation.heading import MAX_FIT_SIGMA_RAD, FixSpread, HeadingCheck, RotationFit, trimmed_rotation_fit
 from robotd.estimation.modes import HeadingEvidence, HeadingMode
@@ -24,14 +25,6 @@ def _fit_with(errors: npt.NDArray[np.float64], rotation: float = 0.3) -> tuple[f
     return fit
 
 
-def _ar1(rng: np.random.Generator, n: int, rho: float, sigma: float) -> npt.NDArray[np.float64]:
-    errors = np.zeros((n, 2))
-    errors[0] = rng.normal(0.0, sigma, 2)
-    for k in range(1, n):
-        errors[k] = rho * errors[k - 1] + rng.normal(0.0, sigma * math.sqrt(1.0 - rho * rho), 2)
-    return errors
-
-
 def test_residuals_that_persist_from_fix_to_fix_make_the_rotation_as_uncertain_as_it_is() -> None:
     rng = np.random.default_rng(7)
     trials = 300
@@ -44,7 +37,7 @@ def test_residuals_that_persist_from_fix_to_fix_make_the_rotation_as_uncertain_a
         white_errors.append(rotation - 0.3)
         white_sigmas.append(sigma)
         assert spread.correlation < 0.5
-        rotation, sigma, *_, spread = _fit_with(_ar1(rng, 60, 0.85, 0.03))
+        rotation, sigma, *_, spread = _fit_with(ar1_errors(rng, 60, 0.85, 0.03))
         correlated_errors.append(rotation - 0.3)
         correlated_sigmas.append(sigma)
     # the stated sigma matches the rotation's real spread, for independent fixes and for correlated ones alike
