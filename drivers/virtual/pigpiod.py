@@ -338,13 +338,10 @@ class VirtualPigpiod:
         if command.cmd in _SCRIPT_COMMANDS:
             return self._script_table_command(command)
         with self._lock:
+            about = self._about_itself(command.cmd)
+            if about is not None:
+                return about
             match command.cmd:
-                case Cmd.TICK:
-                    return self.tick()
-                case Cmd.HWVER:
-                    return self.hardware_revision
-                case Cmd.PIGPV:
-                    return PIGPIO_VERSION
                 case Cmd.NOIB:
                     return self._open_handle(connection)
                 case Cmd.NO:
@@ -371,14 +368,19 @@ class VirtualPigpiod:
     def _script_command(self, command: Command, source: str) -> int:
         """A socket command run by a script."""
         with self._lock:
-            match command.cmd:
-                case Cmd.TICK:
-                    return self.tick()
-                case Cmd.HWVER:
-                    return self.hardware_revision
-                case Cmd.PIGPV:
-                    return PIGPIO_VERSION
-            return self._pin_command(command, source)
+            about = self._about_itself(command.cmd)
+            return about if about is not None else self._pin_command(command, source)
+
+    def _about_itself(self, cmd: int) -> int | None:
+        """TICK, HWVER and PIGPV: what pigpiod says of itself, from a socket or a script (lock held); else None."""
+        match cmd:
+            case Cmd.TICK:
+                return self.tick()
+            case Cmd.HWVER:
+                return self.hardware_revision
+            case Cmd.PIGPV:
+                return PIGPIO_VERSION
+        return None
 
     def _pin_command(self, command: Command, source: str) -> int:
         """Run a pin command, keep its writes in the history and report level changes (lock held)."""
