@@ -79,6 +79,10 @@ class _Connection(asyncio.Protocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
+        if not self._server.serving:
+            # accepted just before the server closed, connected just after: aclose aborted the others already
+            transport.abort()
+            return
         self._server._connections.add(self)
 
     def data_received(self, data: bytes) -> None:
@@ -162,6 +166,11 @@ class VirtualPigpiod:
         self.port = self._server.sockets[0].getsockname()[1]
         return self
 
+    @property
+    def serving(self) -> bool:
+        """Whether the server accepts connections (False once aclose has begun)."""
+        return self._server is not None and self._server.is_serving()
+
     async def aclose(self) -> None:
         """Stop serving and close every client socket."""
         if self._server is not None:
@@ -183,20 +192,18 @@ class VirtualPigpiod:
         failure: list[BaseException] = []
 
         def serve() -> None:
-            loop = asyncio.new_event_loop()
-            try:
-                loop.run_until_complete(self.open())
-            except OSError as error:
-                failure.append(error)
+            # asyncio.Runner: on the way out it cancels and finishes the loop's last tasks (a connection accepted as
+            # the server closed) before closing the loop, so no socket is left to the garbage collector
+            with asyncio.Runner() as runner:
+                try:
+                    runner.run(self.open())
+                except OSError as error:
+                    failure.append(error)
+                    ready.set()
+                    return
                 ready.set()
-                loop.close()
-                return
-            ready.set()
-            try:
-                loop.run_forever()
-                loop.run_until_complete(self.aclose())
-            finally:
-                loop.close()
+                runner.get_loop().run_forever()
+                runner.run(self.aclose())
 
         self._thread = threading.Thread(target=serve, name="vpigpiod", daemon=True)
         self._thread.start()
