@@ -1,4 +1,5 @@
-"""`robotd replay` (a sensor log through odometry, the paper's filter and robotd's) and `robotd convert-librsf`."""
+"""`robotd replay` (a sensor log through odometry, the paper's filter, a gated EKF and robotd's) and `robotd
+convert-librsf`."""
 
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ SHOWN_PROBLEMS = 20  # bad lines listed one by one; beyond, one line counts the 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `robotd replay` and `robotd convert-librsf`."""
     rep = subparsers.add_parser(
-        "replay", help="replay a sensor log through odometry, the paper's EKF and robotd's EKF; score against truth"
+        "replay",
+        help="replay a sensor log through odometry, the paper's EKF, a gated EKF and robotd's EKF; score against truth",
     )
     rep.add_argument("log", help="sensor log (JSON Lines, or an MCAP file: .mcap)")
     rep.add_argument("--out", required=True, help="directory for estimates.jsonl and metrics.json")

@@ -487,7 +487,12 @@ class Daemon:
             drivers["viewer"] = self.viewer.counters()
         if self.fleet is not None:
             drivers["fleet"] = self.fleet.counters()
-        diagnostics = {**self.estimator.counters, "calibration": self.estimator.calibration.as_dict()}
+        estimator = self.estimator
+        diagnostics = {
+            **estimator.counters,
+            "calibration": estimator.calibration.as_dict(),
+            "process_noise_scale": round(estimator.process_noise_scale, 4),
+        }
         return posesock.status_message(t=now, stamp=time.time(), drivers=drivers, filter_diagnostics=diagnostics)
 
     async def _health_loop(self) -> None:

@@ -13,7 +13,9 @@ Theory of operation
 - Each fix gets a verdict (robotd.estimation.fixgate): the first agreeing fixes seed the position, then fixes are gated
   by their NIS (chi-square, 2 dof); rejected fixes that keep coming for `recovery_min_s` and agree with each other once
   the odometry motion is removed re-seed the position (the robot was carried, or the filter drifted). The IPS noise is
-  estimated from the median of recent innovations, robust to outliers, between two bounds.
+  estimated from the median of recent innovations, robust to outliers, between two bounds. The odometry noise is the
+  configuration's times a scale learnt from the whiteness of consecutive innovations (robotd.estimation.process_noise)
+  while the fixes are judged independent.
 - The heading is checked once the robot has driven `heading_align_m` (robotd.estimation.heading): the odometry track is
   rotated onto the fixes (a least-squares rotation); when that rotation disagrees with the filter, the filter takes it.
   An unknown initial heading therefore costs one short drive, not a lost robot.
@@ -37,6 +39,7 @@ from robotd.estimation.fixgate import Diagnostics, FixGate
 from robotd.estimation.heading import HeadingAligner, HeadingCheck, RotationFit
 from robotd.estimation.history import Anchor, FixRecord, History, Predictor, State
 from robotd.estimation.modes import Modes, PositionMode, Verdict
+from robotd.estimation.process_noise import ProcessNoiseScale
 from robotd.estimation.track import OdometryTrack, Twist3
 from robotd.estimation.wheelsteps import TickKinematics, WheelFeed
 
@@ -136,6 +139,10 @@ class Estimator:
             0,
         )
         self._fix_gate = FixGate(c, self.counters, self.modes)
+        self._process_noise = ProcessNoiseScale(
+            c.process_noise_scale_min, c.process_noise_scale_max, enabled=c.adaptive_process_noise
+        )
+        self._predictor.scale_noise(self._process_noise.value)
         if self._calibrator is not None and self._calibrator.judged:
             self._fix_gate.trust_quieter_fixes()  # a saved calibration has judged this installation's fixes
 
@@ -272,6 +279,10 @@ class Estimator:
         history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
+        if verdict is Verdict.ACCEPTED:
+            self._learn_process_noise(t_meas, inn)
+        else:
+            self._process_noise.forget()
         if verdict is Verdict.ACCEPTED and self._calibrator is not None:
             self._calibrate(stated, x, y, timed=timed)
         if aligner.enabled and track.t and track.dist[-1] >= aligner.next_fit:
@@ -279,6 +290,26 @@ class Estimator:
         return Diagnostics(
             t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)
         )
+
+    def _learn_process_noise(self, t_meas: float, inn: ekf.Innovation) -> None:
+        """Give an accepted fix's innovation to the process noise scale; use the scale when it moved."""
+        calibration = self._calibration
+        # persistent fix errors make innovations persist whatever the gain: learn only from fixes that a whole
+        # window judged independent (a heading fit's few residuals can miss it), and drop what was learnt from
+        # fixes judged correlated after all
+        if calibration.fix_correlation > 0.0 and self._process_noise.reset():
+            self._predictor.scale_noise(self._process_noise.value)
+        independent = calibration.windows > 0 and calibration.fix_correlation == 0.0
+        learn = independent and self.modes.heading_known
+        _, pose, dist = self._track.newest(t_meas)
+        s = 0.5 * (inn.s_xx + inn.s_yy)
+        if self._process_noise.on_innovation(t_meas, (inn.nu_x, inn.nu_y), s, (dist, pose[2]), learn=learn):
+            self._predictor.scale_noise(self._process_noise.value)
+
+    @property
+    def process_noise_scale(self) -> float:
+        """The factor on the configured odometry noise variances in use (1 until learnt)."""
+        return self._process_noise.value
 
     def _calibrate(self, stated: float, x: float, y: float, *, timed: bool) -> None:
         """Give an accepted fix to the calibration; take its new values when a window's fit changed them."""

@@ -13,6 +13,7 @@ Pure.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -70,10 +71,18 @@ class Predictor:
     """
 
     def __init__(self, noise: ekf.ControlNoise, modes: Modes, *, midpoint: bool) -> None:
+        self.prior_noise = noise  # as configured: the learnt process noise scale multiplies its odometry terms
         self.noise = noise
         self.modes = modes
         self.midpoint = midpoint
         self.scale: Twist3 = (1.0, 1.0, 1.0)  # the odometry calibration's multipliers of vx, vy, wz
+
+    def scale_noise(self, factor: float) -> None:
+        """Use the configured odometry noise variances times factor (the paper's per-step terms unchanged)."""
+        n = self.prior_noise
+        self.noise = dataclasses.replace(
+            n, lin2=n.lin2 * factor, lat2=n.lat2 * factor, slip2=n.slip2 * factor, turn2=n.turn2 * factor
+        )
 
     def move(self, state: State, u: Twist3, dt: float) -> State:
         """The state moved by the odometry twist u (calibrated by `scale`) for dt (> 0), with the process noise of

@@ -1,8 +1,8 @@
 """The demo's results: the live daemon's pose stream and the replayed baselines, scored against the simulator's truth.
 
 robotd's EKF is scored as it ran in the daemon (the poses it published, each scored at its own time); odometry
-alone, the raw fixes and the paper's EKF come from replaying the daemon's own sensor log (`robotd replay`), so
-every method sees exactly the data the daemon saw.
+alone, the raw fixes, the paper's EKF and the gated EKF come from replaying the daemon's own sensor log
+(`robotd replay`), so every method sees exactly the data the daemon saw.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ LABELS = {
     "odometry": "odometry alone (replayed)",
     "ips": "raw IPS fixes",
     "paper_ekf": "paper's EKF (replayed)",
+    "gated_ekf": "gated EKF (replayed)",
     "ekf": "robotd EKF (live daemon)",
 }
 

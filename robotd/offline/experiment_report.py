@@ -12,11 +12,26 @@ from typing import Any
 
 from robotd.offline import plots
 from robotd.offline.consistency import Consistency
-from robotd.offline.experiment import METRICS, PAPER_MAX_M, TARGET_MAX_M, TARGET_RMSE_M, Experiment, Run, Spread
+from robotd.offline.experiment import (
+    BASELINE_MARGIN,
+    METRICS,
+    PAPER_MAX_M,
+    TARGET_MAX_M,
+    TARGET_RMSE_M,
+    Experiment,
+    Run,
+    Spread,
+)
 from robotd.offline.metrics import ErrorStats
 from robotd.offline.replay import METHODS
 
-LABELS = {"odometry": "odometry alone", "ips": "raw IPS fixes", "paper_ekf": "paper's EKF", "ekf": "robotd EKF"}
+LABELS = {
+    "odometry": "odometry alone",
+    "ips": "raw IPS fixes",
+    "paper_ekf": "paper's EKF",
+    "gated_ekf": "gated EKF",
+    "ekf": "robotd EKF",
+}
 FIG6 = "fig6_trajectories.png"
 FIG7 = "fig7_errors.png"
 NO_VALUE = "–"
@@ -48,7 +63,7 @@ def _seeds_text(exp: Experiment) -> str:
 def _paper_max(method: str) -> str:
     if method == "ekf":
         return f"{PAPER_MAX_M['paper_ekf']} (paper's EKF)"
-    return str(PAPER_MAX_M[method])
+    return str(PAPER_MAX_M[method]) if method in PAPER_MAX_M else NO_VALUE
 
 
 def _summary_table(exp: Experiment) -> list[str]:
@@ -94,7 +109,21 @@ def _verdict(exp: Experiment) -> list[str]:
         lines.append(f"Targets ({target}): missed on {len(failing)} of {len(misses)} seeds ({detail}).")
     else:
         lines.append(f"Targets ({target}): met on all {len(misses)} seeds.")
+    lines.append(_baseline_verdict(exp.runs, "seeds"))
     return lines
+
+
+def _baseline_verdict(runs: list[Run], what: str) -> str:
+    """Issue 14's target over the runs: robotd's RMSE 10 % below the best baseline's, its maximum no larger."""
+    target = (
+        f"Against the baselines (robotd EKF RMSE at most {BASELINE_MARGIN:g} x the best of the raw fixes, the paper's "
+        "EKF and the gated EKF, and a max no larger than the smallest of theirs)"
+    )
+    failing = [(run.seed, miss) for run in runs if (miss := run.baseline_misses())]
+    if not failing:
+        return f"{target}: met on all {len(runs)} {what}."
+    detail = "; ".join(f"{'the run' if seed is None else f'seed {seed}'}: {', '.join(m)}" for seed, m in failing)
+    return f"{target}: missed on {len(failing)} of {len(runs)} {what} ({detail})."
 
 
 def _stats_cells(stats: ErrorStats | None, with_heading: bool) -> list[str]:
@@ -132,6 +161,8 @@ def _real_data(exp: Experiment) -> list[str]:
         lines.append("| " + " | ".join(cells) + " |")
     lines += [
         "",
+        _baseline_verdict([exp.real], "runs"),
+        "",
         (
             "An honest filter holds the truth inside its 95 % ellipse 95 % of the time, with a mean NEES of 2 "
             "(robotd/offline/consistency.py); odometry and the raw fixes claim no covariance."
@@ -152,22 +183,24 @@ def _per_seed(exp: Experiment) -> list[str]:
         "#### Every seed",
         "",
         (
-            "| seed | odometry max (m) | fixes max (m) | paper's EKF RMSE / max (m) "
-            "| robotd EKF RMSE / max / final (m) | robotd EKF worst at (s) | targets |"
+            "| seed | odometry max (m) | fixes max (m) | paper's EKF RMSE / max (m) | gated EKF RMSE / max (m) "
+            "| robotd EKF RMSE / max / final (m) | robotd EKF worst at (s) | targets | against the baselines |"
         ),
-        "|--:|--:|--:|--:|--:|--:|---|",
+        "|--:|--:|--:|--:|--:|--:|--:|---|---|",
     ]
     for run in exp.runs:
         m = run.metrics
-        odometry, fixes, paper, ekf = (m.get(name) for name in METHODS)
+        odometry, fixes, paper, gated, ekf = (m.get(name) for name in METHODS)
         cells = [
             str(run.seed),
             NO_VALUE if odometry is None else _metres(odometry.max_m),
             NO_VALUE if fixes is None else _metres(fixes.max_m),
             NO_VALUE if paper is None else f"{_metres(paper.rmse_m)} / {_metres(paper.max_m)}",
+            NO_VALUE if gated is None else f"{_metres(gated.rmse_m)} / {_metres(gated.max_m)}",
             NO_VALUE if ekf is None else f"{_metres(ekf.rmse_m)} / {_metres(ekf.max_m)} / {_metres(ekf.final_m)}",
             NO_VALUE if run.ekf_worst_at_s is None else f"{run.ekf_worst_at_s:.1f}",
             "; ".join(run.target_misses()) or "met",
+            "; ".join(run.baseline_misses()) or "met",
         ]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
@@ -225,6 +258,7 @@ def results_json(exp: Experiment) -> dict[str, Any]:
         real = {"source": exp.real_note, "duration_s": round(exp.real.duration_s, 3)}
         real["metrics"] = _metrics_json(exp.real.metrics)
         real["consistency"] = {name: honesty.as_dict() for name, honesty in exp.real.consistency.items()}
+        real["baselines_missed"] = exp.real.baseline_misses()
     return {
         "scenario": exp.scenario,
         "loops": exp.loops,
@@ -237,6 +271,8 @@ def results_json(exp: Experiment) -> dict[str, Any]:
             "ekf_max_m": TARGET_MAX_M,
             "ekf_rmse_m": TARGET_RMSE_M,
             "missed": {str(run.seed): run.target_misses() for run in exp.runs if run.target_misses()},
+            "ekf_rmse_share_of_best_baseline": BASELINE_MARGIN,
+            "baselines_missed": {str(run.seed): run.baseline_misses() for run in exp.runs if run.baseline_misses()},
         },
         "runs": [
             {

@@ -24,6 +24,7 @@ STYLES: dict[str, dict[str, object]] = {
     "odometry": {"color": "tab:orange", "linewidth": 1.2, "label": "odometry (dead reckoning)"},
     "ips": {"color": "tab:green", "linestyle": "none", "marker": ".", "markersize": 2.5, "label": "IPS fixes"},
     "paper_ekf": {"color": "tab:blue", "linewidth": 1.2, "label": "paper's EKF"},
+    "gated_ekf": {"color": "tab:purple", "linewidth": 1.0, "linestyle": "--", "label": "gated EKF"},
     "ekf": {"color": "tab:red", "linewidth": 1.4, "label": "robotd EKF"},
 }
 

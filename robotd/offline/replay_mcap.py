@@ -6,7 +6,8 @@ Topic | what
 `/log/<type>` | the sensor log (robotd.viz.logtopics): the file replays again
 `/pose`, `/pose/*`, `/tf`, `/odometry/*`, `/ips/fixes`, `/ips/verdicts` | robotd's filter, as the daemon publishes
   it (robotd.viz.channels)
-`/replay/<method>/pose`, `/replay/<method>/trail` | `paper_ekf`, `odometry` (scored runs only) and `truth`, in the map
+`/replay/<method>/pose`, `/replay/<method>/trail` | `paper_ekf`, `gated_ekf`, `odometry` (scored runs only) and `truth`,
+  in the map
 
 Messages are stamped with the log's time (seconds from its clock's zero).
 """
@@ -79,7 +80,7 @@ def write_replay_mcap(log: SensorLog, result: ReplayResult, config: RobotdConfig
     clock = LogClock()
     robot = RobotModel(config.ekf, result.geometry, result.ips_offset, result.counts_per_rev)
     publisher = Publisher(context, robot, clock, trail_s=math.inf, trail_period_s=TRAIL_PERIOD_S)
-    baselines = (("paper_ekf", result.paper), ("odometry", result.odometry))
+    baselines = (("paper_ekf", result.paper), ("gated_ekf", result.gated), ("odometry", result.odometry))
     methods = [_Method(context, name, traj) for name, traj in baselines if len(traj)]
     truth = [(e.t, e.x, e.y, e.theta) for e in log.events if isinstance(e, Truth)]
     if truth:

@@ -6,7 +6,9 @@ likelihood of the innovations, sum over fixes of (ln det S + NIS) / 2, with robo
 log. A fix beyond the gate counts as if at the gate (an outlier must not decide the noise). The parameters are
 searched one at a time by factors in log space (coordinate descent), within bounds no robot leaves, for a few
 sweeps; a change is kept only when it lowers the total. The odometry scales are those the online calibration ends
-with on each log, averaged by their precision, and the delay of fixes without a measurement time likewise.
+with on each log, averaged by their precision, and the delay of fixes without a measurement time likewise. The
+filter's online process noise scale is off while fitting (the fit is what it learns, done over whole logs); the
+fitted noise is the prior the daemon's scale starts from.
 """
 
 from __future__ import annotations
@@ -57,6 +59,8 @@ class TuneResult:
 def score(log: SensorLog, config: RobotdConfig, ekf_config: EkfConfig) -> tuple[LogFit, Estimator]:
     """Replay one log through robotd's filter with ekf_config; the innovations' fit, and the filter at the end."""
     geometry, offset, cpr, _ = robot_from_log(log, config)
+    # the fit sets the odometry noise itself: the filter's own learnt scale on it would answer for the same thing
+    ekf_config = dataclasses.replace(ekf_config, adaptive_process_noise=False)
     estimator = Estimator(ekf_config, geometry, offset, cpr, default_latency_s=config.marvelmind.default_latency_s)
     nll = nis_sum = 0.0
     count = 0

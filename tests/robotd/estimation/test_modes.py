@@ -9,7 +9,7 @@ import random
 import pytest
 
 from robotd import kinematics
-from robotd.config.model import EkfConfig, paper_preset
+from robotd.config.model import EkfConfig, gated_preset, paper_preset
 from robotd.estimation.estimator import Estimator
 from robotd.estimation.modes import (
     HEADING_TRANSITIONS,
@@ -124,3 +124,33 @@ def test_the_paper_preset_fuses_its_first_fix_and_never_doubts_its_heading() -> 
     assert paper.counters["heading_realigned"] == 0
     assert paper.modes.heading is HeadingMode.ALIGNED
     assert config.gating  # the preset is a new configuration: the one it was made from is unchanged
+
+
+def test_the_gated_preset_seeds_its_position_rejects_a_wild_fix_and_fuses_at_the_measurement_time() -> None:
+    config = dataclasses.replace(EkfConfig(), initial_pose=(1.0, 2.0, 0.0), initial_sigma=(1.0, 1.0, 0.1))
+    gated = Estimator(gated_preset(config), GEOMETRY, (0.0, 0.0), CPR, default_latency_s=0.1)
+    paper = Estimator(paper_preset(config), GEOMETRY, (0.0, 0.0), CPR)
+    assert gated.modes.heading is HeadingMode.ALIGNED  # like the paper's: the configured heading is known
+    true = [1.0, 2.0, 0.0]
+    gated.on_twist(0.0, 0.0, 0.0, 0.0)
+    first = gated.on_fix(0.01, 1.0, 2.0, 0.01)
+    assert first is not None
+    assert first.verdict is Verdict.SEEDING  # placed by agreeing fixes (a gate alone could lock a first outlier in)
+    _drive(gated, 0.0, 0.5, list(true))
+    assert gated.counters["fixes_seeded"] == 1
+    for est in (gated, paper):
+        _drive(est, 0.5 if est is gated else 0.0, 5.0, list(true) if est is paper else true)
+    wild = {}
+    for name, est in (("gated", gated), ("paper", paper)):
+        est.on_twist(5.01, 0.3, 0.0, 0.0)
+        diagnostic = est.on_fix(5.01, 10.0, 2.0, 4.9)  # 8 m off, measured 0.11 s before it arrived
+        assert diagnostic is not None
+        wild[name] = diagnostic
+    assert wild["gated"].verdict is Verdict.GATED
+    assert wild["paper"].verdict is Verdict.ACCEPTED
+    assert wild["gated"].t_meas == 4.9  # at its measurement time; the paper's filter fuses on arrival
+    assert wild["paper"].t_meas == 5.01
+    untimed = gated.on_fix(5.02, 2.5, 2.0, math.nan)
+    assert untimed is not None
+    assert untimed.t_meas == pytest.approx(5.02 - 0.1)  # the configured latency, never learnt
+    assert gated.counters["calibration_windows"] == 0

@@ -32,7 +32,7 @@ def test_a_short_square_through_the_daemon_is_scored_and_leaves_no_process(tmp_p
     output, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0, output
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics) == {"odometry", "ips", "paper_ekf", "ekf"}
+    assert set(metrics) == {"odometry", "ips", "paper_ekf", "gated_ekf", "ekf"}
     # the live daemon's pose stream, scored against the virtual robot's truth
     assert metrics["ekf"]["samples"] > 100
     assert metrics["ekf"]["max_m"] < 0.15
