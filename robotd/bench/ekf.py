@@ -160,7 +160,7 @@ def _replay_seconds(log_path: Path, out: Path, runs: int) -> float:
 
 def run(quick: bool) -> dict[str, float]:
     """Time both filters on one sequence, and `robotd replay` of a one-hour log of the virtual robot end to end,
-    without truth (the target: robotd's filter alone), with truth (three methods scored) and with twists; print the
+    without truth (the target: robotd's filter alone), with truth (four methods scored) and with twists; print the
     ratios."""
     seq = _sequence(2000 if quick else 20000)
     ours = min(_robotd_steps(seq) for _ in range(3))
@@ -180,7 +180,7 @@ def run(quick: bool) -> dict[str, float]:
         seconds, paths = write_hour_logs(Path(folder), loops)
         for key, what in (
             ("replay", "100 Hz wheels, 8 Hz fixes, no truth; read, robotd's filter, outputs"),
-            ("replay_truth", "100 Hz wheels, 8 Hz fixes, 100 Hz truth; read, 3 methods, metrics, outputs"),
+            ("replay_truth", "100 Hz wheels, 8 Hz fixes, 100 Hz truth; read, 4 methods, metrics, outputs"),
             ("replay_twists", "100 Hz twists instead of wheels, 8 Hz fixes, no truth"),
         ):
             out = Path(folder) / "out"
