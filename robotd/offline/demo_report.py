@@ -59,7 +59,8 @@ def results_table(metrics: dict[str, ErrorStats | None]) -> str:
     ]
     for method, label in LABELS.items():
         stats = metrics.get(method)
-        paper = PAPER_MAX_M.get(method, PAPER_MAX_M["paper_ekf"])  # robotd's EKF stands beside the paper's
+        # robotd's EKF stands beside the paper's; the paper had no gated EKF
+        paper = PAPER_MAX_M["paper_ekf"] if method == "ekf" else PAPER_MAX_M.get(method, "-")
         if stats is None:
             lines.append(f"| {label} | - | - | - | - | {paper} |")
             continue

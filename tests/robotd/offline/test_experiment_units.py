@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from robotd.offline import plots
-from robotd.offline.experiment import TARGET_MAX_M, TARGET_RMSE_M, Run, summarise
+from robotd.offline.demo_report import results_table
+from robotd.offline.experiment import PAPER_MAX_M, TARGET_MAX_M, TARGET_RMSE_M, Run, summarise
 from robotd.offline.metrics import ErrorStats, Trajectory
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -105,3 +106,27 @@ def test_errors_are_measured_against_truth_at_the_estimates_times() -> None:
     shifted = Trajectory(np.array([5.0, 20.0]), np.array([1.5, 3.0]), np.array([0.4, -0.3]), np.array([0.1, -0.2]))
     np.testing.assert_allclose(plots.position_error(shifted, truth), [0.4, 0.3])
     np.testing.assert_allclose(plots.heading_error_deg(shifted, truth), np.degrees([0.1, -0.2]))
+
+
+def test_the_demo_table_puts_the_papers_maxima_beside_its_methods_only() -> None:
+    metrics = {name: stats(0.1, 0.2) for name in ("odometry", "ips", "paper_ekf", "gated_ekf", "ekf")}
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in results_table(metrics).splitlines()[2:]}
+    assert rows["odometry alone (replayed)"].endswith(f"| {PAPER_MAX_M['odometry']} |")
+    assert rows["robotd EKF (live daemon)"].endswith(f"| {PAPER_MAX_M['paper_ekf']} |")
+    assert rows["gated EKF (replayed)"].endswith("| - |")  # the paper had no gated EKF
+
+
+@pytest.mark.parametrize(
+    ("ekf", "expected"),
+    [
+        (stats(0.017, 0.08), []),  # 10 % below the gated EKF's 0.02, and its max is the smallest: equal is no larger
+        (stats(0.019, 0.07), ["RMSE 0.019 m > 0.9 x the best baseline's 0.020 m"]),
+        (stats(0.01, 0.09), ["max 0.090 m > the smallest baseline max 0.080 m"]),
+    ],
+)
+def test_baseline_misses_compare_with_the_best_of_the_raw_fixes_the_papers_and_the_gated_ekf(
+    ekf: ErrorStats, expected: list[str]
+) -> None:
+    baselines = {"ips": stats(0.04, 0.1), "paper_ekf": stats(0.03, 0.2), "gated_ekf": stats(0.02, 0.08)}
+    metrics = {"odometry": stats(0.01, 0.01), **baselines, "ekf": ekf}  # odometry alone is no baseline to beat
+    assert Run(1, 100.0, metrics, 5.0, {}, None).baseline_misses() == expected
