@@ -109,7 +109,9 @@ def test_errors_are_measured_against_truth_at_the_estimates_times() -> None:
 
 
 def test_the_demo_table_puts_the_papers_maxima_beside_its_methods_only() -> None:
-    metrics = {name: stats(0.1, 0.2) for name in ("odometry", "ips", "paper_ekf", "gated_ekf", "ekf")}
+    metrics: dict[str, ErrorStats | None] = {
+        name: stats(0.1, 0.2) for name in ("odometry", "ips", "paper_ekf", "gated_ekf", "ekf")
+    }
     rows = {line.split(" | ")[0].lstrip("| "): line for line in results_table(metrics).splitlines()[2:]}
     assert rows["odometry alone (replayed)"].endswith(f"| {PAPER_MAX_M['odometry']} |")
     assert rows["robotd EKF (live daemon)"].endswith(f"| {PAPER_MAX_M['paper_ekf']} |")
@@ -128,5 +130,5 @@ def test_baseline_misses_compare_with_the_best_of_the_raw_fixes_the_papers_and_t
     ekf: ErrorStats, expected: list[str]
 ) -> None:
     baselines = {"ips": stats(0.04, 0.1), "paper_ekf": stats(0.03, 0.2), "gated_ekf": stats(0.02, 0.08)}
-    metrics = {"odometry": stats(0.01, 0.01), **baselines, "ekf": ekf}  # odometry alone is no baseline to beat
+    metrics: dict[str, ErrorStats | None] = {"odometry": stats(0.01, 0.01), **baselines, "ekf": ekf}  # no baseline
     assert Run(1, 100.0, metrics, 5.0, {}, None).baseline_misses() == expected
