@@ -139,10 +139,9 @@ class Estimator:
             0,
         )
         self._fix_gate = FixGate(c, self.counters, self.modes)
-        self._process_noise = ProcessNoiseScale(
-            c.process_noise_scale_min, c.process_noise_scale_max, enabled=c.adaptive_process_noise
-        )
-        self._predictor.scale_noise(self._process_noise.value)
+        self._process_noise: ProcessNoiseScale | None = None  # off: the configured noise, and no work per fix
+        if c.adaptive_process_noise:
+            self._process_noise = ProcessNoiseScale(c.process_noise_scale_min, c.process_noise_scale_max)
         if self._calibrator is not None and self._calibrator.judged:
             self._fix_gate.trust_quieter_fixes()  # a saved calibration has judged this installation's fixes
 
@@ -279,10 +278,8 @@ class Estimator:
         history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
-        if verdict is Verdict.ACCEPTED:
-            self._learn_process_noise(t_meas, inn)
-        else:
-            self._process_noise.forget()
+        if self._process_noise is not None:
+            self._learn_process_noise(self._process_noise, verdict, t_meas, inn)
         if verdict is Verdict.ACCEPTED and self._calibrator is not None:
             self._calibrate(stated, x, y, timed=timed)
         if aligner.enabled and track.t and track.dist[-1] >= aligner.next_fit:
@@ -291,25 +288,31 @@ class Estimator:
             t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)
         )
 
-    def _learn_process_noise(self, t_meas: float, inn: ekf.Innovation) -> None:
-        """Give an accepted fix's innovation to the process noise scale; use the scale when it moved."""
+    def _learn_process_noise(
+        self, scale: ProcessNoiseScale, verdict: Verdict, t_meas: float, inn: ekf.Innovation
+    ) -> None:
+        """Give an accepted fix's innovation to the process noise scale (any other verdict breaks the pairs); use
+        the scale when it moved."""
+        if verdict is not Verdict.ACCEPTED:
+            scale.forget()
+            return
         calibration = self._calibration
         # persistent fix errors make innovations persist whatever the gain: learn only from fixes that a whole
         # window judged independent (a heading fit's few residuals can miss it), and drop what was learnt from
         # fixes judged correlated after all
-        if calibration.fix_correlation > 0.0 and self._process_noise.reset():
-            self._predictor.scale_noise(self._process_noise.value)
+        if calibration.fix_correlation > 0.0 and scale.reset():
+            self._predictor.scale_noise(scale.value)
         independent = calibration.windows > 0 and calibration.fix_correlation == 0.0
         learn = independent and self.modes.heading_known
         _, pose, dist = self._track.newest(t_meas)
         s = 0.5 * (inn.s_xx + inn.s_yy)
-        if self._process_noise.on_innovation(t_meas, (inn.nu_x, inn.nu_y), s, (dist, pose[2]), learn=learn):
-            self._predictor.scale_noise(self._process_noise.value)
+        if scale.on_innovation(t_meas, (inn.nu_x, inn.nu_y), s, (dist, pose[2]), learn=learn):
+            self._predictor.scale_noise(scale.value)
 
     @property
     def process_noise_scale(self) -> float:
-        """The factor on the configured odometry noise variances in use (1 until learnt)."""
-        return self._process_noise.value
+        """The factor on the configured odometry noise variances in use (1 until learnt, and when not learnt)."""
+        return 1.0 if self._process_noise is None else self._process_noise.value
 
     def _calibrate(self, stated: float, x: float, y: float, *, timed: bool) -> None:
         """Give an accepted fix to the calibration; take its new values when a window's fit changed them."""

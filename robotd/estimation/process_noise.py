@@ -29,24 +29,22 @@ CLIP = 3.0  # normalised innovations are clipped to this size: one wild fix cann
 
 
 class ProcessNoiseScale:
-    """The multiplier of the configured odometry noise variances, within [low, high], learnt from accepted fixes."""
+    """The multiplier of the configured odometry noise variances, within [low, high] (low <= 1 <= high, as the
+    configuration requires), learnt from accepted fixes; 1, the configuration itself, until learnt."""
 
-    def __init__(self, low: float, high: float, *, enabled: bool) -> None:
+    def __init__(self, low: float, high: float) -> None:
         self.low = low
         self.high = high
-        self.enabled = enabled
         self.value = 1.0
         self.pairs = 0  # pairs of innovations learnt from
         self._window: deque[tuple[float, float, float, float]] = deque()  # t, wx, wy, |w|^2 of the last SPAN_S
         self._sum = (0.0, 0.0, 0.0)  # of wx, wy, |w|^2 over the window: each new innovation costs O(1)
         self._odometry = (math.nan, math.nan)  # distance travelled and heading at the newest innovation
-        self.reset()
 
     def reset(self) -> bool:
-        """Back to the prior (1, within the bounds), forgetting the innovations; returns whether the scale changed."""
-        prior = min(max(1.0, self.low), self.high)
-        changed = prior != self.value
-        self.value = prior
+        """Back to the prior, 1, forgetting the innovations; returns whether the scale changed."""
+        changed = self.value != 1.0
+        self.value = 1.0
         self.forget()
         return changed
 
@@ -61,7 +59,7 @@ class ProcessNoiseScale:
         """An accepted fix's innovation nu of predicted per-axis variance s, measured at t with the odometry's
         (distance travelled, heading) then; learn only when `learn` (fixes judged independent, heading known).
         Returns whether the scale changed."""
-        if not (self.enabled and s > 0.0):
+        if s <= 0.0:
             return False
         inv = 1.0 / math.sqrt(s)
         wx, wy = nu[0] * inv, nu[1] * inv

@@ -270,9 +270,9 @@ def results_json(exp: Experiment) -> dict[str, Any]:
         "targets": {
             "ekf_max_m": TARGET_MAX_M,
             "ekf_rmse_m": TARGET_RMSE_M,
-            "missed": {str(run.seed): run.target_misses() for run in exp.runs if run.target_misses()},
+            "missed": {str(run.seed): missed for run in exp.runs if (missed := run.target_misses())},
             "ekf_rmse_share_of_best_baseline": BASELINE_MARGIN,
-            "baselines_missed": {str(run.seed): run.baseline_misses() for run in exp.runs if run.baseline_misses()},
+            "baselines_missed": {str(run.seed): missed for run in exp.runs if (missed := run.baseline_misses())},
         },
         "runs": [
             {

@@ -6,8 +6,7 @@ twist; at every fix in a log without inputs), from the events that arrived until
 given the true initial pose (its heading fitted to the first metre of truth when truth has none): the most favourable
 start, so that it is a fair baseline. The filters start from the configuration. The gated EKF (`gated_preset`) is the
 textbook filter a practitioner would write: the paper's, with a chi-square gate and fixes fused at their measurement
-time. The baselines exist only to be scored: a
-log without truth runs robotd's filter alone (their tracks stay empty).
+time. The baselines exist only to be scored: a log without truth runs robotd's filter alone (their tracks stay empty).
 """
 
 from __future__ import annotations
@@ -138,13 +137,11 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     truth = Trajectory.from_samples(truth_samples) if truth_samples else None
     scored = truth is not None  # the baselines exist only to be scored
     robotd = Estimator(config.ekf, geometry, offset, cpr, default_latency_s=config.marvelmind.default_latency_s)
-    paper = Estimator(paper_preset(config.ekf), geometry, offset, cpr) if scored else None
-    gated = None
+    paper = gated = odometry = None
     if scored:
+        paper = Estimator(paper_preset(config.ekf), geometry, offset, cpr)
         latency = config.marvelmind.default_latency_s
         gated = Estimator(gated_preset(config.ekf), geometry, offset, cpr, default_latency_s=latency)
-    odometry = None
-    if scored:
         odo_config = dataclasses.replace(config.ekf, initial_pose=(0.0, 0.0, 0.0))  # local frame, placed on truth later
         odometry = Estimator(odo_config, geometry, offset, cpr)
     filters = tuple(est for est in (robotd, paper, gated, odometry) if est is not None)

@@ -42,7 +42,7 @@ def mean_log_scale(**kind: float) -> float:
     """The mean log of the scale after 30 s of such innovations (300 fixes at 10 Hz), over 20 runs."""
     logs = []
     for seed in range(20):
-        scale = ProcessNoiseScale(0.1, 4.0, enabled=True)
+        scale = ProcessNoiseScale(0.1, 4.0)
         feed(scale, sequence(300, 100 + seed, **kind))
         logs.append(math.log(scale.value))
     return statistics.fmean(logs)
@@ -56,20 +56,19 @@ def test_the_scale_goes_down_when_the_filter_chases_the_fixes_noise_and_up_when_
 
 
 def test_the_scale_stays_within_its_bounds() -> None:
-    down = ProcessNoiseScale(0.1, 4.0, enabled=True)
+    down = ProcessNoiseScale(0.1, 4.0)
     values = feed(down, sequence(5000, 2, chased=0.8))
     assert min(values) == 0.1  # never trusts odometry more than the configuration allows
-    up = ProcessNoiseScale(0.1, 4.0, enabled=True)
+    up = ProcessNoiseScale(0.1, 4.0)
     values = feed(up, sequence(5000, 4, persist=0.8))
     assert max(values) == 4.0
 
 
-def test_nothing_is_learnt_when_not_asked_at_rest_or_disabled() -> None:
+def test_nothing_is_learnt_when_not_asked_or_at_rest() -> None:
     chasing = sequence(300, 8, chased=0.8)
     for scale, speed, learn in (
-        (ProcessNoiseScale(0.1, 4.0, enabled=False), 0.3, True),
-        (ProcessNoiseScale(0.1, 4.0, enabled=True), 0.0, True),  # at rest: the odometry added no noise
-        (ProcessNoiseScale(0.1, 4.0, enabled=True), 0.3, False),  # correlated fixes, or the heading unknown
+        (ProcessNoiseScale(0.1, 4.0), 0.0, True),  # at rest: the odometry added no noise
+        (ProcessNoiseScale(0.1, 4.0), 0.3, False),  # correlated fixes, or the heading unknown
     ):
         for k, nu in enumerate(chasing):
             t = k * PERIOD_S
@@ -79,7 +78,7 @@ def test_nothing_is_learnt_when_not_asked_at_rest_or_disabled() -> None:
 
 
 def test_pairs_never_span_a_forgotten_fix_or_a_gap_longer_than_the_span() -> None:
-    scale = ProcessNoiseScale(0.1, 4.0, enabled=True)
+    scale = ProcessNoiseScale(0.1, 4.0)
     scale.on_innovation(0.0, (1.0, 0.0), 1.0, (0.0, 0.0), learn=True)
     scale.on_innovation(0.1, (-1.0, 0.0), 1.0, (0.03, 0.0), learn=True)
     assert scale.pairs == 1
