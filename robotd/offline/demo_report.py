@@ -16,7 +16,7 @@ import numpy as np
 
 from robotd.config.model import RobotdConfig
 from robotd.logs.sensorlog import read_log
-from robotd.offline.experiment import PAPER_MAX_M, FigureData, Run, score_log
+from robotd.offline.experiment import FigureData, Run, published_max, score_log
 from robotd.offline.experiment_report import write_figures
 from robotd.offline.metrics import ErrorStats, Trajectory, score
 
@@ -59,8 +59,8 @@ def results_table(metrics: dict[str, ErrorStats | None]) -> str:
     ]
     for method, label in LABELS.items():
         stats = metrics.get(method)
-        # robotd's EKF stands beside the paper's; the paper had no gated EKF
-        paper = PAPER_MAX_M["paper_ekf"] if method == "ekf" else PAPER_MAX_M.get(method, "-")
+        published = published_max(method)
+        paper = "-" if published is None else published
         if stats is None:
             lines.append(f"| {label} | - | - | - | - | {paper} |")
             continue

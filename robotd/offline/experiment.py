@@ -43,6 +43,12 @@ TARGET_RMSE_M = 0.05
 BASELINE_MARGIN = 0.9
 
 
+def published_max(method: str) -> float | None:
+    """The paper's published maximum error to stand beside a method: robotd's EKF beside the paper's EKF; None for a
+    method the paper did not run (the gated EKF)."""
+    return PAPER_MAX_M.get("paper_ekf" if method == "ekf" else method)
+
+
 @dataclass(frozen=True, slots=True)
 class Spread:
     """One metric over the seeds: mean, sample standard deviation (0 for one seed), extremes, how many seeds had it."""

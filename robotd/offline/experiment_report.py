@@ -21,6 +21,7 @@ from robotd.offline.experiment import (
     Experiment,
     Run,
     Spread,
+    published_max,
 )
 from robotd.offline.metrics import ErrorStats
 from robotd.offline.replay import METHODS
@@ -61,9 +62,10 @@ def _seeds_text(exp: Experiment) -> str:
 
 
 def _paper_max(method: str) -> str:
-    if method == "ekf":
-        return f"{PAPER_MAX_M['paper_ekf']} (paper's EKF)"
-    return str(PAPER_MAX_M[method]) if method in PAPER_MAX_M else NO_VALUE
+    value = published_max(method)
+    if value is None:
+        return NO_VALUE
+    return f"{value} (paper's EKF)" if method == "ekf" else str(value)
 
 
 def _summary_table(exp: Experiment) -> list[str]:
