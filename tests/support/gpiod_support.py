@@ -1,11 +1,18 @@
-"""Helpers for the gpiod back-end tests: edge-event records written out by hand, one struct.pack per edge."""
+"""Helpers for the gpiod back-end tests: edge-event records written out by hand, one struct.pack per edge; motors on
+the sysfs PWM and output-line stand-ins."""
 
 from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Sequence
 
+from drivers.gpiod.motors import GpiodMotors
+from drivers.gpiod.pwm import find_pwm_chip
+from drivers.settings import MotorPinsLike
 from drivers.virtual.event_pipe import VirtualEventLines
+from drivers.virtual.output_lines import VirtualOutputLines
+from drivers.virtual.pwm_sysfs import VirtualPwmSysfs
 from drivers.virtual.quadrature_signal import encoder_words, merge_streams
 from drivers.wheels.quadrature import EncoderWiring
 from robotd.sim.edges import wheel_edges
@@ -15,6 +22,29 @@ RECORD = struct.Struct("=QIIII24x")
 u32 padding[6]."""
 RISING, FALLING = 1, 2
 GRAY = [0, 2, 3, 1]  # state (A << 1) | B at x4 positions 0, 1, 2, 3: forward, A leads B
+
+
+def stand_in_motors(
+    wheels: Sequence[MotorPinsLike],
+    sysfs: VirtualPwmSysfs,
+    lines: VirtualOutputLines,
+    *,
+    frequency_hz: float = 1000.0,
+    duty_limit: float = 1.0,
+    watchdog: bool = False,
+    heartbeat_timeout_s: float | None = None,
+) -> GpiodMotors:
+    """GpiodMotors whose PWM is the sysfs stand-in and whose direction lines are the output-line stand-in."""
+    return GpiodMotors(
+        wheels,
+        frequency_hz=frequency_hz,
+        duty_limit=duty_limit,
+        pwm_chip=find_pwm_chip(root=sysfs.class_root),
+        attributes=sysfs,
+        open_outputs=lines.open,
+        watchdog=watchdog,
+        heartbeat_timeout_s=heartbeat_timeout_s,
+    )
 
 
 def pack(timestamp_ns: int, rising: bool, offset: int, seqno: int, line_seqno: int) -> bytes:

@@ -19,10 +19,10 @@ from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 
 import pytest
+from gpiod_support import stand_in_motors
 
 from drivers.gpiod.deadman import GpiodDeadman
 from drivers.gpiod.motors import GpiodMotors
-from drivers.gpiod.pwm import find_pwm_chip
 from drivers.gpiod.watchdog import lower_direction_pins
 from drivers.pigpiod.deadman import DeadmanLostError
 from drivers.virtual.output_lines import VirtualOutputLines
@@ -47,15 +47,7 @@ WHEELS = [Wheels(12, 16, 20), Wheels(13, 21, 26), Wheels(18, 23, 24), Wheels(19,
 @contextlib.contextmanager
 def guarded_motors(tmp_path: Path, timeout_s: float) -> Iterator[tuple[GpiodMotors, VirtualPwmSysfs]]:
     sysfs = VirtualPwmSysfs(tmp_path)
-    motors = GpiodMotors(
-        WHEELS,
-        frequency_hz=1000,
-        duty_limit=1.0,
-        pwm_chip=find_pwm_chip(root=sysfs.class_root),
-        attributes=sysfs,
-        open_outputs=VirtualOutputLines().open,
-        heartbeat_timeout_s=timeout_s,
-    )
+    motors = stand_in_motors(WHEELS, sysfs, VirtualOutputLines(), watchdog=True, heartbeat_timeout_s=timeout_s)
     try:
         yield motors, sysfs
     finally:

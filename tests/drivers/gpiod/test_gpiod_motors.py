@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from gpiod_support import stand_in_motors
 
 from drivers.gpiod.lines import GpioUnavailableError
 from drivers.gpiod.motors import GpiodMotors, StopReport, stop_gpiod_motors
@@ -39,15 +40,7 @@ class Rig:
     lines: VirtualOutputLines
 
     def motors(self, wheels: list[Pins] = WHEELS, duty_limit: float = 1.0, watchdog: bool = False) -> GpiodMotors:
-        return GpiodMotors(
-            wheels,
-            frequency_hz=1000,
-            duty_limit=duty_limit,
-            pwm_chip=find_pwm_chip(root=self.sysfs.class_root),
-            attributes=self.sysfs,
-            open_outputs=self.lines.open,
-            watchdog=watchdog,
-        )
+        return stand_in_motors(wheels, self.sysfs, self.lines, duty_limit=duty_limit, watchdog=watchdog)
 
     def outputs(self, wheels: list[Pins] = WHEELS) -> list[tuple[float, int, int]]:
         """(enable duty, IN1, IN2) per wheel, as the pins carry them."""

@@ -18,11 +18,12 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 import pytest
+from gpiod_support import stand_in_motors
 from wheels_support import walk
 
 from drivers.gpiod.encoders import GpiodEncoders
 from drivers.gpiod.motors import GpiodMotors
-from drivers.gpiod.pwm import RP1_PWM_CHANNELS, find_pwm_chip
+from drivers.gpiod.pwm import RP1_PWM_CHANNELS
 from drivers.virtual.event_pipe import VirtualEventLines
 from drivers.virtual.output_lines import VirtualOutputLines
 from drivers.virtual.pigpiod import VirtualPigpiod
@@ -236,14 +237,8 @@ def motor_rig(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[MotorR
             return [(sysfs.output(RP1_PWM_CHANNELS[p.enable]), lines.level(p.in1), lines.level(p.in2)) for p in pins]
 
         def make() -> GpiodMotors:
-            return GpiodMotors(
-                pins,
-                frequency_hz=motors.pwm_frequency_hz,
-                duty_limit=motors.duty_limit,
-                pwm_chip=find_pwm_chip(root=sysfs.class_root),
-                attributes=sysfs,
-                open_outputs=lines.open,
-                watchdog=False,
+            return stand_in_motors(
+                pins, sysfs, lines, frequency_hz=motors.pwm_frequency_hz, duty_limit=motors.duty_limit
             )
 
         yield MotorRig(make, outputs, lambda: _replay(journal, pins))

@@ -10,9 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from gpiod_support import stand_in_motors
 
-from drivers.gpiod.motors import GpiodMotors
-from drivers.gpiod.pwm import find_pwm_chip
 from drivers.virtual.output_lines import VirtualOutputLines
 from drivers.virtual.pwm_sysfs import VirtualPwmSysfs
 from drivers.wheels.motors import wheel_pins
@@ -31,15 +30,7 @@ def test_stop_motors_stops_the_pwm_a_dead_robotd_left_running(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     sysfs = VirtualPwmSysfs(tmp_path / "sys")
-    abandoned = GpiodMotors(
-        wheel_pins(MotorsConfig()),
-        frequency_hz=1000,
-        duty_limit=1.0,
-        pwm_chip=find_pwm_chip(root=sysfs.class_root),
-        attributes=sysfs,
-        open_outputs=VirtualOutputLines().open,
-        watchdog=False,
-    )
+    abandoned = stand_in_motors(wheel_pins(MotorsConfig()), sysfs, VirtualOutputLines())
     abandoned.set_duties((0.5, -0.5, 0.5, 0.5))  # then its owner dies: nothing closes it
     assert [sysfs.output(channel) for channel in range(4)] == [0.5] * 4
     status = main(
