@@ -1,4 +1,5 @@
-"""Real `robotd sim` / `robotd demo` processes for the tests, and the processes still running from a folder."""
+"""Real `robotd sim` / `robotd demo` processes and other Python children for the tests, and the processes still
+running from a folder."""
 
 from __future__ import annotations
 
@@ -35,6 +36,18 @@ def wait_until_gone(text: str, timeout_s: float) -> list[int]:
     while (left := processes_mentioning(text)) and time.monotonic() < deadline:
         time.sleep(0.1)
     return left
+
+
+def python_child(args: list[str], *, stderr: int | None = None) -> subprocess.Popen[str]:
+    """`python ARGS` from the repository with its packages importable, its output piped (text), as a shell runs it."""
+    return subprocess.Popen(
+        [sys.executable, *args],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        stdout=subprocess.PIPE,
+        stderr=stderr,
+        text=True,
+    )
 
 
 def start_sim(out: Path) -> tuple[subprocess.Popen[str], Path]:

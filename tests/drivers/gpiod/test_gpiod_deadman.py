@@ -11,8 +11,6 @@ import asyncio
 import contextlib
 import os
 import signal
-import subprocess
-import sys
 import textwrap
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -20,6 +18,7 @@ from pathlib import Path
 
 import pytest
 from gpiod_support import stand_in_motors
+from process_support import python_child
 
 from drivers.gpiod.deadman import GpiodDeadman
 from drivers.gpiod.motors import GpiodMotors
@@ -29,7 +28,6 @@ from drivers.virtual.output_lines import VirtualOutputLines
 from drivers.virtual.pwm_sysfs import VirtualPwmSysfs
 from robotd.bench import BENCHMARK_ADDITIONS, gpiod_deadman
 
-REPO = Path(__file__).resolve().parents[3]
 BOUND_S = 20.0
 """A generous functional bound, not a timing target (the timing is robotd bench daemon's)."""
 
@@ -167,13 +165,7 @@ while True:  # a control loop: one heartbeat a period, and what the watchdog rep
 
 
 def test_a_sigstopped_owner_has_its_pwm_zeroed_and_hears_of_it_when_it_resumes(tmp_path: Path) -> None:
-    owner = subprocess.Popen(
-        [sys.executable, "-c", textwrap.dedent(OWNER), str(tmp_path)],
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+    owner = python_child(["-c", textwrap.dedent(OWNER), str(tmp_path)])
     try:
         assert owner.stdout is not None
         assert owner.stdout.readline() == "driving\n"

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import sys
 import textwrap
 import time
 from dataclasses import dataclass
@@ -13,14 +11,13 @@ from pathlib import Path
 
 import pytest
 from gpiod_support import stand_in_motors
+from process_support import python_child
 
 from drivers.gpiod.lines import GpioUnavailableError
 from drivers.gpiod.motors import GpiodMotors, StopReport, stop_gpiod_motors
 from drivers.gpiod.pwm import SysfsAttributes, find_pwm_chip
 from drivers.virtual.output_lines import VirtualOutputLines
 from drivers.virtual.pwm_sysfs import VirtualPwmSysfs
-
-REPO = Path(__file__).resolve().parents[3]
 
 
 @dataclass(frozen=True)
@@ -178,13 +175,7 @@ time.sleep(60)
 
 
 def test_after_a_sigkill_the_watchdog_process_stops_the_pwm(tmp_path: Path) -> None:
-    process = subprocess.Popen(
-        [sys.executable, "-c", textwrap.dedent(DRIVER), str(tmp_path)],
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+    process = python_child(["-c", textwrap.dedent(DRIVER), str(tmp_path)])
     try:
         assert process.stdout is not None
         watchdog_pid = int(process.stdout.readline())

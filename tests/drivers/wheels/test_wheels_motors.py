@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import socket
 import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from paths import REPO
+from process_support import python_child
 from wheels_support import wait_until
 
 from drivers.pigpiod.client import PigpiodUnavailableError
@@ -87,14 +85,7 @@ def test_unreachable_pigpiod_is_a_clear_error_and_exit_69(tmp_path: Path) -> Non
 
 
 def _spin_wheels(config: Path) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [sys.executable, "-m", "robotd", "spin-wheels", "--config", str(config), *SPIN_ARGS],
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    return python_child(["-m", "robotd", "spin-wheels", "--config", str(config), *SPIN_ARGS], stderr=subprocess.PIPE)
 
 
 def test_sigterm_to_a_process_driving_the_motors_leaves_them_at_zero(server: VirtualPigpiod, tmp_path: Path) -> None:

@@ -3,12 +3,9 @@
 from __future__ import annotations
 
 import asyncio
-import os
 import signal
 import socket
 import struct
-import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from typing import Any
@@ -18,7 +15,7 @@ import pigpio
 import pytest
 from gpiozero import DigitalInputDevice, DigitalOutputDevice, PWMOutputDevice
 from gpiozero.pins.pigpio import PiGPIOFactory
-from paths import REPO
+from process_support import python_child
 from wheels_support import wait_until
 
 from drivers.pigpiod.protocol import COMMAND, REPORT_SIZE, Cmd, decode_reports, decode_result, encode_command
@@ -202,17 +199,10 @@ def test_drive_levels_only_moves_input_pins_of_the_mask(server: VirtualPigpiod, 
 
 
 def test_robotd_vpigpiod_serves_alone_until_sigterm() -> None:
-    repo = REPO
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    process = subprocess.Popen(
-        [sys.executable, "-m", "robotd", "vpigpiod", "--port", str(port)],
-        cwd=repo,
-        env={**os.environ, "PYTHONPATH": str(repo)},
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+    process = python_child(["-m", "robotd", "vpigpiod", "--port", str(port)])
     try:
         assert process.stdout is not None
         assert f"127.0.0.1:{port}" in process.stdout.readline()
