@@ -27,6 +27,17 @@ Measurement model (the beacon at lever arm (ox, oy) in the body frame; the paper
 
 Update, eqs. 10-17: innovation nu = z - h(s), S = H P H^T + R, K = P H^T S^-1, s += K nu (heading wrapped),
 P = (I - K H) P (I - K H)^T + K R K^T (Joseph form: stays symmetric positive definite under rounding and for any K).
+
+Odometry scales known only to within their calibration's uncertainty (Schmidt-Kalman "consider" parameters): the
+odometry's relative scale errors e = (ex, ey, ew) on vx, vy, wz, of variances sigma_e = diag(v), are not estimated by
+the filter (the calibration learns them) but their uncertainty is carried. A scale error is a bias, not noise: the
+position error it makes grows with the distance driven, not its square root. The cross-covariance of the pose with e
+is J diag(v), J = d pose / d e the pose's sensitivity to a scale error, with
+
+    predict: J' = F J + B,  B = d f / d e = G diag(vx, vy, wz),
+             P' = F P F^T + Q + F J Sigma B^T + B Sigma J^T F^T + B Sigma B^T
+                = F P F^T + Q + sum_k v_k (n_k n_k^T - m_k m_k^T),  m_k = (F J)[:, k], n_k = J'[:, k]
+    update:  J' = (I - K H) J  (P as above: P is the pose's whole covariance, the scales' share included)
 """
 
 from __future__ import annotations
@@ -40,6 +51,10 @@ import numpy.typing as npt
 
 Cov = tuple[float, float, float, float, float, float]
 """A symmetric 3x3 covariance as its upper triangle: (xx, xy, xt, yy, yt, tt)."""
+Sens = tuple[float, float, float, float, float, float, float, float, float]
+"""d (x, y, theta) / d (relative scale errors of vx, vy, wz), row-major: the pose's sensitivity to odometry scales."""
+NO_SENS: Sens = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+NO_SCALE_VAR = (0.0, 0.0, 0.0)  # odometry scales taken as exact: predict_considering is predict
 
 TWO_PI = 2.0 * math.pi
 Angle = TypeVar("Angle", float, npt.NDArray[np.float64])
@@ -105,28 +120,77 @@ def predict(  # noqa: PLR0917 - the paper's symbols as plain floats: no packing 
 ) -> tuple[float, float, float, Cov]:
     """One prediction step over dt > 0: the state through eq. 5 (see displacement) and P through eq. 7,
     P' = F P F^T + Q, with F from eq. 6 and Q = G M G^T the control noise of this motion (ControlNoise)."""
-    dx, dy, c, s = displacement(vx, vy, wz, dt, theta, midpoint=midpoint)
+    x1, y1, theta1, p1, _ = predict_considering(
+        x, y, theta, p, NO_SENS, vx, vy, wz, dt, noise, NO_SCALE_VAR, midpoint=midpoint
+    )
+    return x1, y1, theta1, p1
+
+
+def predict_considering(  # noqa: PLR0917 - the paper's symbols as plain floats: no packing in the hot path
+    x: float,
+    y: float,
+    theta: float,
+    p: Cov,
+    sens: Sens,
+    vx: float,
+    vy: float,
+    wz: float,
+    dt: float,
+    noise: ControlNoise,
+    scale_var: tuple[float, float, float],
+    *,
+    midpoint: bool,
+) -> tuple[float, float, float, Cov, Sens]:
+    """predict, with odometry scales uncertain by the relative variances scale_var (see the module docstring): the
+    sensitivity J carried on, and P grown by the scales' share.
+
+    One function for both (predict calls it with no uncertainty): the estimator's hot path, written out once.
+    """
+    th = theta + 0.5 * wz * dt if midpoint else theta  # displacement(), written out: the hot path's hottest call
+    c, s = math.cos(th), math.sin(th)
+    vxdt, vydt, wzdt = vx * dt, vy * dt, wz * dt
+    dx, dy = vxdt * c - vydt * s, vxdt * s + vydt * c
     speed = math.hypot(vx, vy)
-    inv_dt = 1.0 / dt
-    # Variances of the control errors over this step; the random-walk terms grow with distance, not time,
-    # so they enter M divided by dt (G carries dt twice).
-    m_vx = noise.lin2 * speed * inv_dt + noise.const_v2
-    m_vy = noise.lat2 * speed * inv_dt + noise.const_v2
-    m_wz = (noise.slip2 * speed + noise.turn2 * abs(wz)) * inv_dt + noise.const_w2
+    # The control errors' variances over this step, times dt^2 (G carries dt twice): the random-walk terms grow with
+    # distance, not time (speed dt), the paper's per-step terms with dt^2
     dt2 = dt * dt
+    q_vx = noise.lin2 * speed * dt + noise.const_v2 * dt2
+    q_vy = noise.lat2 * speed * dt + noise.const_v2 * dt2
+    q_wz = (noise.slip2 * speed + noise.turn2 * abs(wz)) * dt + noise.const_w2 * dt2
     a = -dy  # eq. 6: d x'/d theta
     b = dx  # eq. 6: d y'/d theta
     cc, ss = c * c, s * s
     xx, xy, xt, yy, yt, tt = p
-    p_new = (  # eq. 7, F P F^T written out for F = I + (a, b) in the theta column, plus Q (its theta cross terms are 0)
-        xx + 2.0 * a * xt + a * a * tt + dt2 * (cc * m_vx + ss * m_vy),
-        xy + a * yt + b * xt + a * b * tt + dt2 * c * s * (m_vx - m_vy),
-        xt + a * tt,
-        yy + 2.0 * b * yt + b * b * tt + dt2 * (ss * m_vx + cc * m_vy),
-        yt + b * tt,
-        tt + dt2 * m_wz,
+    # eq. 7, F P F^T written out for F = I + (a, b) in the theta column, plus Q (its theta cross terms are 0)
+    xx = xx + 2.0 * a * xt + a * a * tt + cc * q_vx + ss * q_vy
+    xy = xy + a * yt + b * xt + a * b * tt + c * s * (q_vx - q_vy)
+    xt = xt + a * tt
+    yy = yy + 2.0 * b * yt + b * b * tt + ss * q_vx + cc * q_vy
+    yt = yt + b * tt
+    tt = tt + q_wz
+    theta1 = (theta + wzdt + math.pi) % TWO_PI - math.pi  # wrap_angle, written out (the hot path)
+    v0, v1, v2 = scale_var
+    if v0 == 0.0 and v1 == 0.0 and v2 == 0.0:
+        return x + dx, y + dy, theta1, (xx, xy, xt, yy, yt, tt), sens
+    jx0, jx1, jx2, jy0, jy1, jy2, jt0, jt1, jt2 = sens
+    # M = F J: F adds the heading row times (a, b) to the x and y rows
+    mx0, mx1, mx2 = jx0 + a * jt0, jx1 + a * jt1, jx2 + a * jt2
+    my0, my1, my2 = jy0 + b * jt0, jy1 + b * jt1, jy2 + b * jt2
+    # J' = M + B; B's columns: (c, s, 0) vx dt, (-s, c, 0) vy dt, (0, 0, 1) wz dt
+    bx0, by0 = c * vxdt, s * vxdt
+    bx1, by1 = -s * vydt, c * vydt
+    nx0, ny0, nx1, ny1, nt2 = mx0 + bx0, my0 + by0, mx1 + bx1, my1 + by1, jt2 + wzdt
+    # sum_k v_k (n_k n_k^T - m_k m_k^T), upper triangle: B's column k differs from zero in the position rows for
+    # k = 0, 1 and in the heading row for k = 2, so n_k and m_k share the other rows
+    p_new = (
+        xx + v0 * (nx0 * nx0 - mx0 * mx0) + v1 * (nx1 * nx1 - mx1 * mx1),
+        xy + v0 * (nx0 * ny0 - mx0 * my0) + v1 * (nx1 * ny1 - mx1 * my1),
+        xt + v0 * bx0 * jt0 + v1 * bx1 * jt1 + v2 * mx2 * wzdt,
+        yy + v0 * (ny0 * ny0 - my0 * my0) + v1 * (ny1 * ny1 - my1 * my1),
+        yt + v0 * by0 * jt0 + v1 * by1 * jt1 + v2 * my2 * wzdt,
+        tt + v2 * (nt2 * nt2 - jt2 * jt2),
     )
-    return x + dx, y + dy, wrap_angle(theta + wz * dt), p_new
+    return x + dx, y + dy, theta1, p_new, (nx0, nx1, mx2, ny0, ny1, my2, jt0, jt1, nt2)
 
 
 class Innovation(NamedTuple):
@@ -163,6 +227,30 @@ def innovation(  # noqa: PLR0917 - the paper's symbols as plain floats: no packi
     return Innovation(nu_x, nu_y, s_xx, s_xy, s_yy, nis, h02, h12)
 
 
+class Gain(NamedTuple):
+    """The Kalman gain K = P H^T S^-1 (eq. 13), 3x2: the x, y and heading rows' columns for nu_x and nu_y."""
+
+    k0x: float
+    k1x: float
+    k0y: float
+    k1y: float
+    k0t: float
+    k1t: float
+
+
+def gain(p: Cov, inn: Innovation, *, freeze_heading: bool = False) -> Gain:
+    """The gain of an innovation (eq. 13); with freeze_heading its heading row is zero."""
+    xx, xy, xt, yy, yt, tt = p
+    h02, h12 = inn.h02, inn.h12
+    # P H^T, one column per measured axis
+    u0x, u0y, u0t = xx + h02 * xt, xy + h02 * yt, xt + h02 * tt
+    u1x, u1y, u1t = xy + h12 * xt, yy + h12 * yt, yt + h12 * tt
+    det = inn.s_xx * inn.s_yy - inn.s_xy * inn.s_xy
+    i00, i01, i11 = inn.s_yy / det, -inn.s_xy / det, inn.s_xx / det  # S^-1
+    k0t, k1t = (0.0, 0.0) if freeze_heading else (u0t * i00 + u1t * i01, u0t * i01 + u1t * i11)
+    return Gain(u0x * i00 + u1x * i01, u0x * i01 + u1x * i11, u0y * i00 + u1y * i01, u0y * i01 + u1y * i11, k0t, k1t)
+
+
 def update(  # noqa: PLR0917 - the paper's symbols as plain floats: no packing in the hot path
     x: float, y: float, theta: float, p: Cov, inn: Innovation, r: float, *, freeze_heading: bool = False
 ) -> tuple[float, float, float, Cov]:
@@ -171,17 +259,16 @@ def update(  # noqa: PLR0917 - the paper's symbols as plain floats: no packing i
     With freeze_heading the gain's heading row is zeroed (a fix taken at rest says nothing about the heading);
     the Joseph form keeps P exact for that sub-optimal gain.
     """
+    return apply_gain(x, y, theta, p, inn, r, gain(p, inn, freeze_heading=freeze_heading))
+
+
+def apply_gain(  # noqa: PLR0917 - the paper's symbols as plain floats: no packing in the hot path
+    x: float, y: float, theta: float, p: Cov, inn: Innovation, r: float, k: Gain
+) -> tuple[float, float, float, Cov]:
+    """The state corrected by gain k (eq. 14) and its Joseph-form covariance (eqs. 15-17)."""
     xx, xy, xt, yy, yt, tt = p
     h02, h12 = inn.h02, inn.h12
-    # P H^T, one column per measured axis
-    u0x, u0y, u0t = xx + h02 * xt, xy + h02 * yt, xt + h02 * tt
-    u1x, u1y, u1t = xy + h12 * xt, yy + h12 * yt, yt + h12 * tt
-    det = inn.s_xx * inn.s_yy - inn.s_xy * inn.s_xy
-    i00, i01, i11 = inn.s_yy / det, -inn.s_xy / det, inn.s_xx / det  # S^-1
-    # eq. 13: K = P H^T S^-1 (3x2)
-    k0x, k1x = u0x * i00 + u1x * i01, u0x * i01 + u1x * i11
-    k0y, k1y = u0y * i00 + u1y * i01, u0y * i01 + u1y * i11
-    k0t, k1t = (0.0, 0.0) if freeze_heading else (u0t * i00 + u1t * i01, u0t * i01 + u1t * i11)
+    k0x, k1x, k0y, k1y, k0t, k1t = k
     nu_x, nu_y = inn.nu_x, inn.nu_y
     x_new = x + k0x * nu_x + k1x * nu_y  # eq. 14
     y_new = y + k0y * nu_x + k1y * nu_y
@@ -204,21 +291,49 @@ def update(  # noqa: PLR0917 - the paper's symbols as plain floats: no packing i
     return x_new, y_new, theta_new, p_new
 
 
+def corrected_sensitivity(sens: Sens, inn: Innovation, k: Gain) -> Sens:
+    """The pose's sensitivity to the odometry scales after a fix fused with gain k: (I - K H) J."""
+    h02, h12 = inn.h02, inn.h12
+    k0x, k1x, k0y, k1y, k0t, k1t = k
+    jx0, jx1, jx2, jy0, jy1, jy2, jt0, jt1, jt2 = sens
+    # (K H) J, row i: K[i] . (J_x + h02 J_t, J_y + h12 J_t)
+    hx0, hx1, hx2 = jx0 + h02 * jt0, jx1 + h02 * jt1, jx2 + h02 * jt2
+    hy0, hy1, hy2 = jy0 + h12 * jt0, jy1 + h12 * jt1, jy2 + h12 * jt2
+    return (
+        jx0 - k0x * hx0 - k1x * hy0,
+        jx1 - k0x * hx1 - k1x * hy1,
+        jx2 - k0x * hx2 - k1x * hy2,
+        jy0 - k0y * hx0 - k1y * hy0,
+        jy1 - k0y * hx1 - k1y * hy1,
+        jy2 - k0y * hx2 - k1y * hy2,
+        jt0 - k0t * hx0 - k1t * hy0,
+        jt1 - k0t * hx1 - k1t * hy1,
+        jt2 - k0t * hx2 - k1t * hy2,
+    )
+
+
 def chi2_gate_2dof(probability: float) -> float:
     """The NIS threshold that a 2-dof chi-square variable stays below with this probability: -2 ln(1 - p)."""
     return -2.0 * math.log(1.0 - probability)
 
 
 __all__ = [
+    "NO_SENS",
     "ControlNoise",
     "Cov",
+    "Gain",
     "Innovation",
+    "Sens",
+    "apply_gain",
     "chi2_gate_2dof",
+    "corrected_sensitivity",
     "cov_diag",
     "cov_full",
     "displacement",
+    "gain",
     "innovation",
     "predict",
+    "predict_considering",
     "update",
     "wrap_angle",
 ]

@@ -108,7 +108,7 @@ class Estimator:
             sigmas = (0.0, 0.0, 0.0, 0.0, 0.0)
             calibration = Calibration(*c.odometry_scale, default_latency_s, 0.0, sigmas)
         self._calibration = calibration
-        self._predictor.scale = (calibration.kx, calibration.ky, calibration.kw)
+        self._use_scales(calibration)
         x0, y0, th0 = c.initial_pose
         first = Anchor(-math.inf, x0, y0, ekf.wrap_angle(th0), ekf.cov_diag(*c.initial_sigma), None)
         self._history = History(self._track, self._predictor, first, c.history_s, keep_past=c.latency_compensation)
@@ -183,7 +183,7 @@ class Estimator:
     def _set_clock(self, t: float) -> None:
         """The first input or fix sets the clock: the initial state is at t."""
         first = self._history.anchors[0]
-        self._history.reset(Anchor(t, first.x, first.y, first.theta, first.p, None))
+        self._history.reset(first._replace(t=t))
 
     def _step_to(self, t: float, step_u: Twist3, held: Twist3) -> None:
         """A step ending at t with twist step_u, then `held` in force (the first input starts the track)."""
@@ -252,7 +252,7 @@ class Estimator:
         if t_meas < newest_step or k < len(anchors) - 1:
             counters["late_fixes"] += 1
         prior = history.state_at(anchors[k], t_meas, self._pending)
-        px, py, pth, pp = prior
+        px, py, pth, pp, psens = prior
         r = gate.r
         if not timed and self.config.latency_compensation:
             # the delay is known only to within its sigma: the fix's noise along the motion grows by speed x that
@@ -274,7 +274,7 @@ class Estimator:
         elif verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             anchor = self._seed(prior, t_meas, (x, y, r), verdict)
         else:
-            anchor = Anchor(t_meas, px, py, pth, pp, FixRecord(x, y, r, fused=False))
+            anchor = Anchor(t_meas, px, py, pth, pp, FixRecord(x, y, r, fused=False), psens)
         history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
@@ -322,8 +322,16 @@ class Estimator:
         calibration = self._calibration = calibrator.current
         self.counters["calibration_windows"] += 1
         self._fix_gate.trust_quieter_fixes()
-        self._predictor.scale = (calibration.kx, calibration.ky, calibration.kw)
+        self._use_scales(calibration)
         self._newest = None  # states carried with the old scales
+
+    def _use_scales(self, calibration: Calibration) -> None:
+        """Predict with the calibration's odometry scales and, while it learns them, their uncertainty."""
+        kx, ky, kw = calibration.kx, calibration.ky, calibration.kw
+        self._predictor.scale = (kx, ky, kw)
+        if self._calibrator is not None:
+            sx, sy, sw = calibration.sigmas[:3]
+            self._predictor.scale_var = ((sx / kx) ** 2, (sy / ky) ** 2, (sw / kw) ** 2)
 
     @property
     def calibration(self) -> Calibration:
@@ -333,16 +341,17 @@ class Estimator:
     def _remake(self, state: State, old: Anchor) -> Anchor:
         """An anchor made again at its time from the state there: its fix fused again, its seed moved again."""
         fix = old.fix
-        x, y, th, p = state
+        x, y, th, p, sens = state
         if fix is None:
-            return Anchor(old.t, x, y, th, p, None)
+            return Anchor(old.t, x, y, th, p, None, sens)
         if fix.fused:
             inn = ekf.innovation(x, y, th, p, fix.zx, fix.zy, fix.r, *self._offset)
             return self._fuse(state, old.t, (fix.zx, fix.zy, fix.r), inn)
         if fix.seed is not None:
             r = fix.r
-            return Anchor(old.t, x + fix.seed[0], y + fix.seed[1], th, (r, 0.0, 0.0, r, 0.0, p[5]), fix)
-        return Anchor(old.t, x, y, th, p, fix)
+            p_seed = (r, 0.0, 0.0, r, 0.0, p[5])
+            return Anchor(old.t, x + fix.seed[0], y + fix.seed[1], th, p_seed, fix, _heading_only(sens))
+        return Anchor(old.t, x, y, th, p, fix, sens)
 
     def _fuse(self, prior: State, t: float, z: tuple[float, float, float], inn: ekf.Innovation) -> Anchor:
         """The anchor of fix z = (zx, zy, r) fused at t into the prior."""
@@ -352,8 +361,10 @@ class Estimator:
         else:
             u = self._track.twist_at(t) or self._pending()
             freeze = math.hypot(u[0], u[1]) < self.config.heading_min_speed_mps
-        x, y, th, p = ekf.update(prior[0], prior[1], prior[2], prior[3], inn, z[2], freeze_heading=freeze)
-        return Anchor(t, x, y, th, p, FixRecord(z[0], z[1], z[2], fused=True))
+        k = ekf.gain(prior[3], inn, freeze_heading=freeze)
+        x, y, th, p = ekf.apply_gain(prior[0], prior[1], prior[2], prior[3], inn, z[2], k)
+        sens = prior[4] if self._calibrator is None else ekf.corrected_sensitivity(prior[4], inn, k)
+        return Anchor(t, x, y, th, p, FixRecord(z[0], z[1], z[2], fused=True), sens)
 
     def _seed(self, prior: State, t: float, z: tuple[float, float, float], verdict: Verdict) -> Anchor:
         """Move the beacon onto the agreeing fixes (their median innovation), forgetting the position's past."""
@@ -363,7 +374,8 @@ class Estimator:
         dx, dy = self._fix_gate.seed_shift(verdict)
         zx, zy, r = z
         p = (r, 0.0, 0.0, r, 0.0, prior[3][5])
-        return Anchor(t, prior[0] + dx, prior[1] + dy, prior[2], p, FixRecord(zx, zy, r, fused=False, seed=(dx, dy)))
+        fix = FixRecord(zx, zy, r, fused=False, seed=(dx, dy))
+        return Anchor(t, prior[0] + dx, prior[1] + dy, prior[2], p, fix, _heading_only(prior[4]))
 
     # --- heading alignment --------------------------------------------------------------------------
 
@@ -383,7 +395,7 @@ class Estimator:
             # the first judgement of the fixes, a window before the calibration's: fuse them for what they are worth
             self._calibration = calibrator.current
             self._fix_gate.trust_quieter_fixes()
-        _, _, theta, p = self._state_at_newest_step()
+        _, _, theta, p, _ = self._state_at_newest_step()
         evidence = self._heading_check.evidence(fit, theta, p[5], self.modes.heading)
         if evidence is not None and self.modes.on_evidence(evidence):
             self._realign(fit)
@@ -448,7 +460,7 @@ class Estimator:
         """
         newest_step = self._track.t[-1] if self._track.t else -math.inf
         when = max(newest_step, self._history.newest.t)
-        x, y, th, p = self._state_at_newest_step()
+        x, y, th, p, sens = self._state_at_newest_step()
         raw = self._pending()
         kx, ky, kw = self._predictor.scale
         u = (raw[0] * kx, raw[1] * ky, raw[2] * kw)
@@ -456,12 +468,17 @@ class Estimator:
             t = max(when, self._wheels.last_t)
         if t > when and math.isfinite(when):
             # the same process model as a step: the covariance grows with the motion the extrapolation assumes
-            x, y, th, p = self._predictor.move((x, y, th, p), raw, t - when)
+            x, y, th, p, _ = self._predictor.move((x, y, th, p, sens), raw, t - when)
             when = t
         shared = self._calibration.fix_correlated_var
         if shared > 0.0:
             p = (p[0] + shared, p[1], p[2], p[3] + shared, p[4], p[5])
         return when, x, y, th, u, p
+
+
+def _heading_only(sens: ekf.Sens) -> ekf.Sens:
+    """The sensitivity of a position placed on fixes (which owe nothing to the odometry) and a heading kept."""
+    return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, sens[6], sens[7], sens[8])
 
 
 __all__ = ["Diagnostics", "Estimator", "PoseEstimate", "PositionMode", "Verdict"]

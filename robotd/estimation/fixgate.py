@@ -6,10 +6,14 @@
   they keep coming for `recovery_min_s` and agree with each other once the odometry motion is removed (as
   innovations), the position is re-seeded on them (the robot was carried, or the filter drifted); one consistent
   burst of outliers is too short to do that.
-- The IPS noise variance is estimated from the median of recent innovations (robust to outliers), less what the
-  prediction accounts for, up to ips_sigma_max_m^2; at least ips_sigma_m^2 (the configured prior) until the fixes
-  have been judged (`trust_quieter_fixes`), at least ips_sigma_min_m^2 after: consecutive fixes whose errors persist
-  agree with each other, so their innovations alone would make a correlated IPS look quieter than it is.
+- The IPS noise variance is estimated from the median of recent innovations, less what the prediction accounts for,
+  up to ips_sigma_max_m^2; at least ips_sigma_m^2 (the configured prior) until the fixes have been judged
+  (`trust_quieter_fixes`), at least ips_sigma_min_m^2 after: consecutive fixes whose errors persist agree with each
+  other, so their innovations alone would make a correlated IPS look quieter than it is.
+- A fix that would fail the gate even with twice the noise sigma in use is an outlier, not a sample of the noise, and
+  is left out of that estimate: a median is robust only while outliers are fewer than half its window, and a long
+  burst of them fills it (it raised R to its ceiling, after which the gate let the burst in). Each window can still
+  double the sigma, so an estimate that starts too low follows a noisier IPS.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from robotd.estimation.heading import LN4
 from robotd.estimation.modes import Modes, Verdict
 
 Innovation3 = tuple[float, float, float]  # t_meas, innovation x, y
+NOISE_SAMPLE_SPREAD = 3.0  # a fix samples the noise if it passes the gate with R + 3 R (twice the sigma) in S
 
 
 class Diagnostics(NamedTuple):
@@ -72,7 +77,7 @@ class FixGate:
                 return Verdict.SEEDING
             counters["fixes_seeded"] += 1
             return Verdict.SEEDED
-        if config.adaptive_ips_noise:
+        if config.adaptive_ips_noise and self._samples_noise(inn, r):
             self._learn_noise(inn, r)
         if not config.gating or inn.nis <= self.gate:
             self.rejected.clear()
@@ -124,6 +129,14 @@ class FixGate:
         newest = rejected[-1][0]
         recent = [e for e in rejected if newest - e[0] <= c.recovery_min_s]
         return len(recent) >= c.recovery_min_fixes and self._agree(recent)
+
+    def _samples_noise(self, inn: ekf.Innovation, r: float) -> bool:
+        """Whether the fix is within the gate of a noise twice as large in sigma as r: a sample of the noise."""
+        extra = NOISE_SAMPLE_SPREAD * r
+        s_xx, s_yy = inn.s_xx + extra, inn.s_yy + extra
+        det = s_xx * s_yy - inn.s_xy * inn.s_xy
+        nu_x, nu_y = inn.nu_x, inn.nu_y
+        return (nu_x * nu_x * s_yy - 2.0 * nu_x * nu_y * inn.s_xy + nu_y * nu_y * s_xx) <= self.gate * det
 
     def _learn_noise(self, inn: ekf.Innovation, r: float) -> None:
         """Track the IPS noise variance as the median innovation, less what the prediction accounts for."""

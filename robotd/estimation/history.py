@@ -21,8 +21,8 @@ from robotd.estimation import ekf
 from robotd.estimation.modes import Modes
 from robotd.estimation.track import OdometryTrack, Twist3
 
-State = tuple[float, float, float, ekf.Cov]
-"""x, y, theta and P (upper triangle)."""
+State = tuple[float, float, float, ekf.Cov, ekf.Sens]
+"""x, y, theta, P (upper triangle) and the pose's sensitivity to the odometry scales (ekf.Sens)."""
 UNKNOWN_HEADING_CORRELATION_S = 0.1  # how long a velocity error from an unknown heading persists: a fix interval
 
 
@@ -52,11 +52,12 @@ class Anchor(NamedTuple):
     theta: float
     p: ekf.Cov
     fix: FixRecord | None
+    sens: ekf.Sens = ekf.NO_SENS
 
     @property
     def state(self) -> State:
-        """x, y, theta, P."""
-        return self.x, self.y, self.theta, self.p
+        """x, y, theta, P, sensitivity."""
+        return self.x, self.y, self.theta, self.p, self.sens
 
 
 class Predictor:
@@ -76,6 +77,7 @@ class Predictor:
         self.modes = modes
         self.midpoint = midpoint
         self.scale: Twist3 = (1.0, 1.0, 1.0)  # the odometry calibration's multipliers of vx, vy, wz
+        self.scale_var: Twist3 = ekf.NO_SCALE_VAR  # their relative variances (see ekf.predict_considering)
 
     def scale_noise(self, factor: float) -> None:
         """Use the configured odometry noise variances times factor (the paper's per-step terms unchanged)."""
@@ -89,16 +91,27 @@ class Predictor:
         that motion."""
         kx, ky, kw = self.scale
         vx, vy, wz = u[0] * kx, u[1] * ky, u[2] * kw
-        x, y, theta, p = ekf.predict(
-            state[0], state[1], state[2], state[3], vx, vy, wz, dt, self.noise, midpoint=self.midpoint
+        x, y, theta, p, sens = ekf.predict_considering(
+            state[0],
+            state[1],
+            state[2],
+            state[3],
+            state[4],
+            vx,
+            vy,
+            wz,
+            dt,
+            self.noise,
+            self.scale_var,
+            midpoint=self.midpoint,
         )
         if self.modes.heading_known:
-            return x, y, theta, p
+            return x, y, theta, p, sens
         # a velocity error of up to twice the speed, correlated over about one fix interval (each fix re-anchors the
         # position, so only the motion since the last one is in doubt), as white noise of that density
         q = 4.0 * (vx * vx + vy * vy) * dt * UNKNOWN_HEADING_CORRELATION_S
         xx, xy, _, yy, _, tt = p
-        return x, y, theta, (xx + q, xy, 0.0, yy + q, 0.0, tt)
+        return x, y, theta, (xx + q, xy, 0.0, yy + q, 0.0, tt), (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, *sens[6:])
 
 
 class History:
@@ -144,9 +157,36 @@ class History:
         vx, vy, wz, steps_t = track.vx, track.vy, track.wz, track.t
         if steps_t[b] > at:
             state = move(state, (vx[b], vy[b], wz[b]), steps_t[b] - at)
+        predictor = self.predictor
+        if not predictor.modes.heading_known:
+            for k in range(b + 1, j + 1):
+                state = move(state, (vx[k], vy[k], wz[k]), steps_t[k] - steps_t[k - 1])
+            return state
+        # Predictor.move written out for the known heading: the replay's innermost loop, one step per odometry input
+        kx, ky, kw = predictor.scale
+        noise, scale_var, midpoint, predict = (
+            predictor.noise,
+            predictor.scale_var,
+            predictor.midpoint,
+            ekf.predict_considering,
+        )
+        x, y, th, p, sens = state
         for k in range(b + 1, j + 1):
-            state = move(state, (vx[k], vy[k], wz[k]), steps_t[k] - steps_t[k - 1])
-        return state
+            x, y, th, p, sens = predict(
+                x,
+                y,
+                th,
+                p,
+                sens,
+                vx[k] * kx,
+                vy[k] * ky,
+                wz[k] * kw,
+                steps_t[k] - steps_t[k - 1],
+                noise,
+                scale_var,
+                midpoint=midpoint,
+            )
+        return x, y, th, p, sens
 
     def move_within(self, state: State, at: float, t: float, pending: Callable[[], Twist3]) -> State:
         """The state at `at` moved on to t >= at, within the step that contains t (pending() beyond the newest)."""
@@ -185,8 +225,8 @@ class History:
             # a long outage: carry the base anchor to the newest step before the horizon (what it would be there)
             j = bisect.bisect_right(steps_t, horizon) - 1
             if j >= 0 and steps_t[j] > times[0] and (len(times) == 1 or steps_t[j] < times[1]):
-                x, y, th, p = self.state_at(anchors[0], steps_t[j], pending)
-                anchors[0] = Anchor(steps_t[j], x, y, th, p, None)
+                x, y, th, p, sens = self.state_at(anchors[0], steps_t[j], pending)
+                anchors[0] = Anchor(steps_t[j], x, y, th, p, None, sens)
                 times[0] = steps_t[j]
         return max(bisect.bisect_right(steps_t, times[0]) - 1, 0)
 

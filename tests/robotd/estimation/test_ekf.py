@@ -6,6 +6,7 @@ import math
 import random
 
 import numpy as np
+import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -188,3 +189,51 @@ def test_angles_wrap_the_same_as_floats_and_as_arrays() -> None:
         assert -math.pi <= w < math.pi
         assert math.isclose(math.cos(w), math.cos(angle), abs_tol=1e-12)
         assert math.isclose(math.sin(w), math.sin(angle), abs_tol=1e-12)
+
+
+def _augmented_step(state: np.ndarray, u: tuple[float, float, float], dt: float) -> np.ndarray:
+    """Eq. 5 (Euler) on the state augmented with relative scale errors of vx, vy and wz, which stay constant."""
+    x, y, th, ex, ey, ew = state
+    vx, vy, wz = u[0] * (1.0 + ex), u[1] * (1.0 + ey), u[2] * (1.0 + ew)
+    c, s = math.cos(th), math.sin(th)
+    return np.array([x + (vx * c - vy * s) * dt, y + (vx * s + vy * c) * dt, th + wz * dt, ex, ey, ew])
+
+
+def test_the_odometry_scales_share_is_the_augmented_schmidt_filter_s() -> None:
+    # the reference: the 6-state filter of pose and scale errors, its Jacobian by finite differences, and the
+    # Schmidt-Kalman update (the scale errors are considered, not estimated: their rows of the gain are zero)
+    rng = random.Random(5)
+    noise = ekf.ControlNoise(lin2=4e-4, lat2=9e-4, slip2=2.5e-3, turn2=2.5e-3, const_v2=1e-4, const_w2=1e-4)
+    scale_var = (0.01, 0.02, 0.015)
+    x, y, th, p, sens = 0.0, 0.0, 0.3, ekf.cov_diag(0.1, 0.2, 0.05), ekf.NO_SENS
+    aug = np.zeros((6, 6))
+    aug[:3, :3] = np.reshape(ekf.cov_full(p), (3, 3))
+    aug[3:, 3:] = np.diag(scale_var)
+    r = 0.01
+    for step in range(200):
+        u = (rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3), rng.uniform(-1.0, 1.0))
+        dt = 0.02
+        here = np.array([x, y, th, 0.0, 0.0, 0.0])
+        jac = np.zeros((6, 6))
+        for k in range(6):
+            d = np.zeros(6)
+            d[k] = 1e-7
+            jac[:, k] = (_augmented_step(here + d, u, dt) - _augmented_step(here - d, u, dt)) / 2e-7
+        q = np.zeros((6, 6))
+        step_noise = ekf.predict(x, y, th, (0.0,) * 6, *u, dt, noise, midpoint=False)[3]
+        q[:3, :3] = np.reshape(ekf.cov_full(step_noise), (3, 3))
+        aug = jac @ aug @ jac.T + q
+        x, y, th, p, sens = ekf.predict_considering(x, y, th, p, sens, *u, dt, noise, scale_var, midpoint=False)
+        if step % 10 == 9:
+            inn = ekf.innovation(x, y, th, p, x + rng.gauss(0, 0.1), y + rng.gauss(0, 0.1), r, 0.1, 0.05)
+            kg = ekf.gain(p, inn)
+            sens = ekf.corrected_sensitivity(sens, inn, kg)
+            x, y, th, p = ekf.apply_gain(x, y, th, p, inn, r, kg)
+            h = np.array([[1.0, 0.0, inn.h02, 0.0, 0.0, 0.0], [0.0, 1.0, inn.h12, 0.0, 0.0, 0.0]])
+            gain = np.zeros((6, 2))
+            gain[:3] = [[kg.k0x, kg.k1x], [kg.k0y, kg.k1y], [kg.k0t, kg.k1t]]
+            a = np.eye(6) - gain @ h
+            aug = a @ aug @ a.T + r * gain @ gain.T
+    assert np.reshape(ekf.cov_full(p), (3, 3)) == pytest.approx(aug[:3, :3], abs=1e-9)
+    assert np.reshape(sens, (3, 3)) @ np.diag(scale_var) == pytest.approx(aug[:3, 3:], abs=1e-9)
+    assert float(np.abs(aug[:3, 3:]).max()) > 1e-4  # the pose does depend on the scales: the check has teeth

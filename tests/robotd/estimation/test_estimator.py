@@ -112,6 +112,50 @@ def test_scattered_outliers_never_trigger_a_recovery() -> None:
     assert math.hypot(est.pose().x, est.pose().y) < 0.03
 
 
+def test_a_long_burst_of_echoes_neither_raises_the_fix_noise_estimate_nor_gets_in() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    _drive(est, 4.0, (0.0, 0.0, 0.0), noise=0.03)
+    rng = random.Random(6)
+    verdicts = []
+    r_m = math.nan
+    for i in range(40):  # 5 s of echoes thrown 0.8-1.6 m one way: more than half the noise estimate's window
+        t = 4.0 + i * 0.125
+        distance = rng.uniform(0.8, 1.6)
+        record = est.on_fix(t, distance + rng.gauss(0, 0.03), rng.gauss(0, 0.03), t)
+        assert record is not None
+        verdicts.append(record.verdict)
+        r_m = record.r_m
+    assert set(verdicts) == {Verdict.GATED}
+    assert r_m < 0.06  # the configured 0.03, not the ceiling that would let the echoes through
+    assert math.hypot(est.pose().x, est.pose().y) < 0.03
+
+
+def test_a_noisier_ips_than_configured_is_learnt() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    _drive(est, 30.0, (0.3, 0.0, 0.1), noise=0.12)
+    pose = est.pose()
+    record = est.on_fix(30.01, pose.x, pose.y, 30.01)
+    assert record is not None
+    assert 0.08 < record.r_m < 0.2
+    assert est.counters["fixes_rejected"] < 0.05 * est.counters["fixes"]
+
+
+def test_a_robot_whose_sideways_motion_is_not_what_its_wheels_say_stays_honest_through_an_outage() -> None:
+    # mecanum rollers that deliver 88 % of the sideways motion; the calibration has not seen the robot strafe yet,
+    # so the outage's error is the lateral scale's: the covariance must grow with the distance, as that error does
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    x, y, t = _drive(est, 6.0, (0.3, 0.0, 0.0), noise=0.02)[0], 0.0, 6.0
+    while t < 14.0 - 1e-9:  # strafing, no fixes
+        t += 0.01
+        y += 0.88 * 0.3 * 0.01
+        est.on_twist(t, 0.0, 0.3, 0.0)
+    pose = est.pose()
+    error_y = pose.y - y
+    assert abs(error_y) > 0.2  # the wheels over-state the strafe by 12 %: this is what the covariance must cover
+    assert abs(pose.x - x) < 0.05
+    assert error_y * error_y / pose.cov[4] < 5.99  # inside the 95 % bound on the axis
+
+
 def _twists_and_fix(est: Estimator, fix_arrival: float) -> None:
     rng = random.Random(11)
     twists = [(0.01 * (i + 1), rng.uniform(0, 0.5), rng.uniform(-0.2, 0.2), rng.uniform(-1, 1)) for i in range(200)]

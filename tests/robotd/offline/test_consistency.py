@@ -31,8 +31,10 @@ def test_nees_is_the_error_weighted_by_the_estimate_s_own_covariance() -> None:
     assert pytest.approx(-2.0 * math.log(0.05)) == CHI2_2DOF_95
 
 
-@pytest.mark.parametrize("variant", ["square", *VARIANTS])
+@pytest.mark.parametrize("variant", ["square", "outage", *VARIANTS])
 def test_robotd_s_filter_is_honest_on_every_named_scenario(variant: str) -> None:
+    # outage: 20 s without fixes while the robot strafes a side of the square whose sideways scale the calibration has
+    # not seen yet; the covariance grows with the distance driven as that scale's error does
     config = sim_config()
     for seed in (1, 2):
         result = replay(simulated(config, seed, loops=1, scenario=variant), config)

@@ -16,9 +16,10 @@ from robotd.offline.tune import score, tune
 
 
 def _overconfident(config: RobotdConfig) -> RobotdConfig:
-    """The configuration with odometry noise ten times too small: a filter that believes its wheels too much."""
+    """The configuration with odometry noise ten times too small and its scales taken as known to 1 %: a filter that
+    believes its wheels too much."""
     ekf = dataclasses.replace(
-        config.ekf, odom_along_sigma_m=0.002, odom_across_sigma_m=0.003, slip_heading_sigma_rad=0.005
+        config.ekf, odom_along_sigma_m=0.002, odom_across_sigma_m=0.003, slip_heading_sigma_rad=0.005, scale_sigma=0.01
     )
     return dataclasses.replace(config, ekf=ekf)
 
