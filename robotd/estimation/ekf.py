@@ -56,6 +56,12 @@ Sens = tuple[float, float, float, float, float, float, float, float, float]
 NO_SENS: Sens = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 NO_SCALE_VAR = (0.0, 0.0, 0.0)  # odometry scales taken as exact: predict_considering is predict
 
+
+def heading_sensitivity(sens: Sens) -> Sens:
+    """sens with its position rows zero: a position that owes nothing to the odometry, its heading kept."""
+    return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, sens[6], sens[7], sens[8])
+
+
 TWO_PI = 2.0 * math.pi
 Angle = TypeVar("Angle", float, npt.NDArray[np.float64])
 
@@ -222,9 +228,13 @@ def innovation(  # noqa: PLR0917 - the paper's symbols as plain floats: no packi
     s_xx = xx + 2.0 * h02 * xt + h02 * h02 * tt + r  # eq. 11, S = H P H^T + R
     s_xy = xy + h12 * xt + h02 * yt + h02 * h12 * tt
     s_yy = yy + 2.0 * h12 * yt + h12 * h12 * tt + r
+    return Innovation(nu_x, nu_y, s_xx, s_xy, s_yy, mahalanobis2(nu_x, nu_y, s_xx, s_xy, s_yy), h02, h12)
+
+
+def mahalanobis2(nu_x: float, nu_y: float, s_xx: float, s_xy: float, s_yy: float) -> float:
+    """nu^T S^-1 nu for a 2-vector nu and a symmetric 2x2 S (the NIS of an innovation)."""
     det = s_xx * s_yy - s_xy * s_xy
-    nis = (nu_x * nu_x * s_yy - 2.0 * nu_x * nu_y * s_xy + nu_y * nu_y * s_xx) / det
-    return Innovation(nu_x, nu_y, s_xx, s_xy, s_yy, nis, h02, h12)
+    return (nu_x * nu_x * s_yy - 2.0 * nu_x * nu_y * s_xy + nu_y * nu_y * s_xx) / det
 
 
 class Gain(NamedTuple):
@@ -318,6 +328,7 @@ def chi2_gate_2dof(probability: float) -> float:
 
 
 __all__ = [
+    "NO_SCALE_VAR",
     "NO_SENS",
     "ControlNoise",
     "Cov",
@@ -331,7 +342,9 @@ __all__ = [
     "cov_full",
     "displacement",
     "gain",
+    "heading_sensitivity",
     "innovation",
+    "mahalanobis2",
     "predict",
     "predict_considering",
     "update",

@@ -350,7 +350,7 @@ class Estimator:
         if fix.seed is not None:
             r = fix.r
             p_seed = (r, 0.0, 0.0, r, 0.0, p[5])
-            return Anchor(old.t, x + fix.seed[0], y + fix.seed[1], th, p_seed, fix, _heading_only(sens))
+            return Anchor(old.t, x + fix.seed[0], y + fix.seed[1], th, p_seed, fix, ekf.heading_sensitivity(sens))
         return Anchor(old.t, x, y, th, p, fix, sens)
 
     def _fuse(self, prior: State, t: float, z: tuple[float, float, float], inn: ekf.Innovation) -> Anchor:
@@ -363,7 +363,7 @@ class Estimator:
             freeze = math.hypot(u[0], u[1]) < self.config.heading_min_speed_mps
         k = ekf.gain(prior[3], inn, freeze_heading=freeze)
         x, y, th, p = ekf.apply_gain(prior[0], prior[1], prior[2], prior[3], inn, z[2], k)
-        sens = prior[4] if self._calibrator is None else ekf.corrected_sensitivity(prior[4], inn, k)
+        sens = ekf.corrected_sensitivity(prior[4], inn, k)
         return Anchor(t, x, y, th, p, FixRecord(z[0], z[1], z[2], fused=True), sens)
 
     def _seed(self, prior: State, t: float, z: tuple[float, float, float], verdict: Verdict) -> Anchor:
@@ -375,7 +375,7 @@ class Estimator:
         zx, zy, r = z
         p = (r, 0.0, 0.0, r, 0.0, prior[3][5])
         fix = FixRecord(zx, zy, r, fused=False, seed=(dx, dy))
-        return Anchor(t, prior[0] + dx, prior[1] + dy, prior[2], p, fix, _heading_only(prior[4]))
+        return Anchor(t, prior[0] + dx, prior[1] + dy, prior[2], p, fix, ekf.heading_sensitivity(prior[4]))
 
     # --- heading alignment --------------------------------------------------------------------------
 
@@ -474,11 +474,6 @@ class Estimator:
         if shared > 0.0:
             p = (p[0] + shared, p[1], p[2], p[3] + shared, p[4], p[5])
         return when, x, y, th, u, p
-
-
-def _heading_only(sens: ekf.Sens) -> ekf.Sens:
-    """The sensitivity of a position placed on fixes (which owe nothing to the odometry) and a heading kept."""
-    return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, sens[6], sens[7], sens[8])
 
 
 __all__ = ["Diagnostics", "Estimator", "PoseEstimate", "PositionMode", "Verdict"]

@@ -133,10 +133,7 @@ class FixGate:
     def _samples_noise(self, inn: ekf.Innovation, r: float) -> bool:
         """Whether the fix is within the gate of a noise twice as large in sigma as r: a sample of the noise."""
         extra = NOISE_SAMPLE_SPREAD * r
-        s_xx, s_yy = inn.s_xx + extra, inn.s_yy + extra
-        det = s_xx * s_yy - inn.s_xy * inn.s_xy
-        nu_x, nu_y = inn.nu_x, inn.nu_y
-        return (nu_x * nu_x * s_yy - 2.0 * nu_x * nu_y * inn.s_xy + nu_y * nu_y * s_xx) <= self.gate * det
+        return ekf.mahalanobis2(inn.nu_x, inn.nu_y, inn.s_xx + extra, inn.s_xy, inn.s_yy + extra) <= self.gate
 
     def _learn_noise(self, inn: ekf.Innovation, r: float) -> None:
         """Track the IPS noise variance as the median innovation, less what the prediction accounts for."""

@@ -111,7 +111,7 @@ class Predictor:
         # position, so only the motion since the last one is in doubt), as white noise of that density
         q = 4.0 * (vx * vx + vy * vy) * dt * UNKNOWN_HEADING_CORRELATION_S
         xx, xy, _, yy, _, tt = p
-        return x, y, theta, (xx + q, xy, 0.0, yy + q, 0.0, tt), (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, *sens[6:])
+        return x, y, theta, (xx + q, xy, 0.0, yy + q, 0.0, tt), ekf.heading_sensitivity(sens)
 
 
 class History:
@@ -157,36 +157,9 @@ class History:
         vx, vy, wz, steps_t = track.vx, track.vy, track.wz, track.t
         if steps_t[b] > at:
             state = move(state, (vx[b], vy[b], wz[b]), steps_t[b] - at)
-        predictor = self.predictor
-        if not predictor.modes.heading_known:
-            for k in range(b + 1, j + 1):
-                state = move(state, (vx[k], vy[k], wz[k]), steps_t[k] - steps_t[k - 1])
-            return state
-        # Predictor.move written out for the known heading: the replay's innermost loop, one step per odometry input
-        kx, ky, kw = predictor.scale
-        noise, scale_var, midpoint, predict = (
-            predictor.noise,
-            predictor.scale_var,
-            predictor.midpoint,
-            ekf.predict_considering,
-        )
-        x, y, th, p, sens = state
         for k in range(b + 1, j + 1):
-            x, y, th, p, sens = predict(
-                x,
-                y,
-                th,
-                p,
-                sens,
-                vx[k] * kx,
-                vy[k] * ky,
-                wz[k] * kw,
-                steps_t[k] - steps_t[k - 1],
-                noise,
-                scale_var,
-                midpoint=midpoint,
-            )
-        return x, y, th, p, sens
+            state = move(state, (vx[k], vy[k], wz[k]), steps_t[k] - steps_t[k - 1])
+        return state
 
     def move_within(self, state: State, at: float, t: float, pending: Callable[[], Twist3]) -> State:
         """The state at `at` moved on to t >= at, within the step that contains t (pending() beyond the newest)."""
