@@ -311,7 +311,8 @@ class EkfConfig:
         True,
         "Estimate the IPS noise from the median of recent innovations (robust to outliers), never above "
         "ips_sigma_max_m, nor below ips_sigma_m until the fixes have been judged (the first window of driving tells "
-        "whether their errors persist from fix to fix), nor below ips_sigma_min_m after.",
+        "whether their errors persist from fix to fix), nor below ips_sigma_min_m after (nor, for fixes whose errors "
+        "persist, below the noise the judging fit saw).",
     )
     ips_sigma_max_m: float = setting(0.3, "Largest IPS noise the adaptive estimate may reach.", positive)
     ips_sigma_min_m: float = setting(

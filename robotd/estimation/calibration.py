@@ -62,6 +62,7 @@ class Calibration:
     windows: int = 0  # windows fitted so far
     fix_correlated_var: float = 0.0  # m^2 per axis: the part of the fixes' error that persists from fix to fix
     fix_correlation: float = 0.0  # lag-one correlation of consecutive fixes' errors (0: independent fixes)
+    fix_var: float = 0.0  # m^2 per axis: the fixes' error variance that the fits judging them saw (smoothed)
 
     @property
     def fix_information(self) -> float:
@@ -82,6 +83,15 @@ class Calibration:
     def rotation_scale(self) -> float:
         """Rotation over what the kinematics give, beyond the radius scale (track, wheel scrub)."""
         return self.kw / self.kx
+
+    @property
+    def persistent_fix_var(self) -> float:
+        """The fixes' error variance per axis when the fits found it persisting from fix to fix, else 0.
+
+        Innovations see only the part of a persistent error that changes between fixes (the filter has followed the
+        rest), so they cannot measure that noise: the fits, whose odometry path does not follow the fixes, can.
+        """
+        return self.fix_var if self.fix_correlation > 0.0 else 0.0
 
     def as_dict(self) -> dict[str, float | int]:
         """The status's and replay's report."""
@@ -123,6 +133,7 @@ class Calibrator:
         self.windows = start.windows
         self.fix_correlated_var = start.fix_correlated_var
         self.fix_correlation = start.fix_correlation
+        self.fix_var = start.fix_var
         self._data_correlation = 0.0  # of the residuals of each window's fit on its data alone, smoothed
         self._heading_judged = False  # judge_fixes has judged the fixes (before any window)
         self._fitted_at = math.nan
@@ -184,13 +195,18 @@ class Calibrator:
         per axis and lag-one `correlation`), taken only before the first window; returns whether it was taken.
 
         Until a window has judged the fixes, a shared error among them looks like their agreement; heading fits come
-        sooner, each newer one (more travel) replaces the one before, and the first window replaces what they say.
+        sooner, and the first window replaces what they say. A shared error once found stays found until then: a
+        later fit whose few dozen residuals show no correlation beyond chance has not shown it gone (chance hides it).
         """
         if self.windows:
             return False
+        rho = beyond_chance(correlation, count)
+        if self._heading_judged and rho < self.fix_correlation:
+            return False
         self._heading_judged = True
-        self.fix_correlation = beyond_chance(correlation, count)
-        self.fix_correlated_var = variance * self.fix_correlation
+        self.fix_correlation = rho
+        self.fix_correlated_var = variance * rho
+        self.fix_var = variance
         self.current = self._snapshot()
         return True
 
@@ -269,6 +285,7 @@ class Calibrator:
         smoothing = 1.0 if self.windows == 0 else 0.3
         self.fix_correlated_var += (correlated - self.fix_correlated_var) * smoothing
         self.fix_correlation += (persistent - self.fix_correlation) * smoothing
+        self.fix_var += (sigma2 - self.fix_var) * smoothing
         self.windows += 1
         # the fixes' correlation is the installation's (anchors, walls), not one window's: judged over the windows
         data_rho = _data_correlation(path, np.concatenate([nuisance, cal]), stated, timed, zs, keep)
@@ -295,7 +312,16 @@ class Calibrator:
         s = np.sqrt(np.clip(np.diag(self.cov), 0.0, None)).tolist()
         sigmas = (s[0], s[1], s[2], s[3], s[4])
         return Calibration(
-            m[0], m[1], m[2], m[3], m[4], sigmas, self.windows, self.fix_correlated_var, self.fix_correlation
+            m[0],
+            m[1],
+            m[2],
+            m[3],
+            m[4],
+            sigmas,
+            self.windows,
+            self.fix_correlated_var,
+            self.fix_correlation,
+            self.fix_var,
         )
 
 

@@ -321,7 +321,7 @@ class Estimator:
             return
         calibration = self._calibration = calibrator.current
         self.counters["calibration_windows"] += 1
-        self._fix_gate.trust_quieter_fixes()
+        self._fix_gate.trust_quieter_fixes(calibration.persistent_fix_var)
         self._use_scales(calibration)
         self._newest = None  # states carried with the old scales
 
@@ -394,7 +394,7 @@ class Estimator:
         if calibrator is not None and calibrator.judge_fixes(*fit.fixes):
             # the first judgement of the fixes, a window before the calibration's: fuse them for what they are worth
             self._calibration = calibrator.current
-            self._fix_gate.trust_quieter_fixes()
+            self._fix_gate.trust_quieter_fixes(self._calibration.persistent_fix_var)
         _, _, theta, p, _ = self._state_at_newest_step()
         evidence = self._heading_check.evidence(fit, theta, p[5], self.modes.heading)
         if evidence is not None and self.modes.on_evidence(evidence):

@@ -10,6 +10,9 @@
   up to ips_sigma_max_m^2; at least ips_sigma_m^2 (the configured prior) until the fixes have been judged
   (`trust_quieter_fixes`), at least ips_sigma_min_m^2 after: consecutive fixes whose errors persist agree with each
   other, so their innovations alone would make a correlated IPS look quieter than it is.
+- Once the fixes are judged correlated, the noise estimate is also at least the fix noise that the judging fit saw:
+  the filter follows an error that persists, so innovations see only how much it changes from fix to fix (on a real
+  UWB run whose fix errors of 0.15 m persist for seconds, they put the noise at 5 mm, and the covariance with it).
 - A fix that would fail the gate even with twice the noise sigma in use is an outlier, not a sample of the noise, and
   is left out of that estimate: a median is robust only while outliers are fewer than half its window, and a long
   burst of them fills it (it raised R to its ceiling, after which the gate let the burst in). Each window can still
@@ -102,9 +105,14 @@ class FixGate:
         dy = sorted(e[2] for e in recent)[len(recent) // 2]
         return dx, dy
 
-    def trust_quieter_fixes(self) -> None:
-        """The fixes have been judged (their correlation is known): the noise estimate may go below the configured."""
-        self.r_floor = min(self.config.ips_sigma_min_m, self.config.ips_sigma_m) ** 2
+    def trust_quieter_fixes(self, persistent_var: float = 0.0) -> None:
+        """The fixes have been judged (their correlation is known): the noise estimate may go below the configured,
+        but not below `persistent_var`, the noise of fixes whose errors were found to persist (0: independent)."""
+        c = self.config
+        quietest = min(c.ips_sigma_min_m, c.ips_sigma_m) ** 2
+        self.r_floor = min(max(quietest, persistent_var), c.ips_sigma_max_m**2)
+        if c.adaptive_ips_noise:
+            self.r = max(self.r, self.r_floor)
 
     def forget(self) -> None:
         """Drop the rejected fixes and the innovations: what they were measured against is gone."""

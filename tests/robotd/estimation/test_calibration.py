@@ -130,9 +130,14 @@ def test_a_heading_fit_judges_the_fixes_before_the_first_window_and_the_window_r
     assert calibrator.judge_fixes(100, 0.1**2, 0.8)  # a persistent error, well beyond chance for 100 residuals
     assert calibrator.current.fix_information == pytest.approx(0.2 / 1.8)
     assert calibrator.current.fix_correlated_var == pytest.approx(0.008)
-    assert calibrator.judge_fixes(100, 0.03**2, 0.1)  # a newer fit: within chance (2 / sqrt(100)), independent fixes
-    assert calibrator.current.fix_correlation == 0.0
-    assert calibrator.current.fix_correlated_var == 0.0
+    assert calibrator.current.fix_var == pytest.approx(0.01)
+    # a newer fit whose residuals show no correlation beyond chance (2 / sqrt(100)) has not shown the shared error gone
+    assert not calibrator.judge_fixes(100, 0.03**2, 0.1)
+    assert calibrator.current.fix_correlation == pytest.approx(0.8)
+    assert calibrator.current.persistent_fix_var == pytest.approx(0.01)
+    assert calibrator.judge_fixes(100, 0.12**2, 0.9)  # a stronger finding replaces it
+    assert calibrator.current.fix_correlation == pytest.approx(0.9)
+    assert calibrator.current.persistent_fix_var == pytest.approx(0.12**2)
     judged = _circle_drive(ar1_errors(np.random.default_rng(2), 800, 0.9, 0.1), 1.0)
     assert judged.windows > 0
     after = Calibrator(judged, CalibrationLimits(), (0.0, 0.0))

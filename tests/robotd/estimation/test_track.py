@@ -199,3 +199,33 @@ def test_the_noise_estimate_goes_below_the_configured_sigma_only_once_the_fixes_
         inn = ekf.Innovation(quiet * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)  # P = 0: S = R
         gate._learn_noise(inn, gate.r)
     assert gate.r == pytest.approx(quiet**2, rel=0.05)
+
+
+def test_fixes_judged_correlated_keep_the_noise_the_judging_fit_saw() -> None:
+    # the filter follows a persistent fix error, so the innovations see only its changes from fix to fix: on the libRSF
+    # UWB run (fix errors of 0.15 m lasting seconds) they put the noise at the 5 mm floor
+    config = EkfConfig(ips_sigma_m=0.03, ips_sigma_min_m=0.005)
+    gate = FixGate(
+        config,
+        dict.fromkeys(("fixes_accepted", "fixes_rejected", "recoveries", "fixes_seeded"), 0),
+        Modes(heading_known=True),
+    )
+    gate.trust_quieter_fixes(0.08**2)  # a fit found their errors persisting, with 8 cm of noise
+    assert gate.r == pytest.approx(0.08**2)  # taken at once, not only when the next innovations come
+    quiet = 0.01
+    for _ in range(40):
+        inn = ekf.Innovation(quiet * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)  # P = 0: S = R
+        gate._learn_noise(inn, gate.r)
+    assert gate.r == pytest.approx(0.08**2)
+    loud = 0.12  # a noisier IPS is still followed above that floor
+    for _ in range(40):
+        inn = ekf.Innovation(loud * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)
+        gate._learn_noise(inn, gate.r)
+    assert gate.r == pytest.approx(loud**2, rel=0.05)
+    gate.trust_quieter_fixes(0.0)  # judged independent after all: the quiet innovations are believed again
+    for _ in range(40):
+        inn = ekf.Innovation(quiet * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)
+        gate._learn_noise(inn, gate.r)
+    assert gate.r == pytest.approx(quiet**2, rel=0.05)
+    gate.trust_quieter_fixes(1.0)  # never above the configured ceiling
+    assert gate.r == pytest.approx(config.ips_sigma_max_m**2)
