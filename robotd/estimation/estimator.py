@@ -143,7 +143,8 @@ class Estimator:
         if c.adaptive_process_noise:
             self._process_noise = ProcessNoiseScale(c.process_noise_scale_min, c.process_noise_scale_max)
         if self._calibrator is not None and self._calibrator.judged:
-            self._fix_gate.trust_quieter_fixes()  # a saved calibration has judged this installation's fixes
+            # a saved calibration has judged this installation's fixes
+            self._fix_gate.trust_quieter_fixes(calibration.persistent_fix_var)
 
     # --- inputs -----------------------------------------------------------------------------------
 

@@ -105,7 +105,7 @@ class FixGate:
         dy = sorted(e[2] for e in recent)[len(recent) // 2]
         return dx, dy
 
-    def trust_quieter_fixes(self, persistent_var: float = 0.0) -> None:
+    def trust_quieter_fixes(self, persistent_var: float) -> None:
         """The fixes have been judged (their correlation is known): the noise estimate may go below the configured,
         but not below `persistent_var`, the noise of fixes whose errors were found to persist (0: independent)."""
         c = self.config

@@ -182,22 +182,28 @@ def test_a_long_outage_keeps_the_daemons_history_short_and_the_estimate_unchange
     assert all(math.isclose(u, v, rel_tol=1e-9, abs_tol=1e-15) for u, v in zip(a.cov, b.cov, strict=True))
 
 
-def test_the_noise_estimate_goes_below_the_configured_sigma_only_once_the_fixes_are_judged() -> None:
-    config = EkfConfig(ips_sigma_m=0.03, ips_sigma_min_m=0.005)
-    gate = FixGate(
+def _gate(config: EkfConfig) -> FixGate:
+    return FixGate(
         config,
         dict.fromkeys(("fixes_accepted", "fixes_rejected", "recoveries", "fixes_seeded"), 0),
         Modes(heading_known=True),
     )
+
+
+def _learn_from(gate: FixGate, sigma: float) -> None:
+    """Give the gate's noise estimate 40 innovations whose median is that of an IPS of `sigma` (P = 0: S = R)."""
+    for _ in range(40):
+        inn = ekf.Innovation(sigma * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)
+        gate._learn_noise(inn, gate.r)
+
+
+def test_the_noise_estimate_goes_below_the_configured_sigma_only_once_the_fixes_are_judged() -> None:
+    gate = _gate(EkfConfig(ips_sigma_m=0.03, ips_sigma_min_m=0.005))
     quiet = 0.01  # innovations of a 1 cm IPS, whose median says so
-    for _ in range(40):
-        inn = ekf.Innovation(quiet * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)  # P = 0: S = R
-        gate._learn_noise(inn, gate.r)
+    _learn_from(gate, quiet)
     assert gate.r == pytest.approx(0.03**2)  # the configured sigma is the prior until the fixes are judged
-    gate.trust_quieter_fixes()
-    for _ in range(40):
-        inn = ekf.Innovation(quiet * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)  # P = 0: S = R
-        gate._learn_noise(inn, gate.r)
+    gate.trust_quieter_fixes(0.0)
+    _learn_from(gate, quiet)
     assert gate.r == pytest.approx(quiet**2, rel=0.05)
 
 
@@ -205,27 +211,17 @@ def test_fixes_judged_correlated_keep_the_noise_the_judging_fit_saw() -> None:
     # the filter follows a persistent fix error, so the innovations see only its changes from fix to fix: on the libRSF
     # UWB run (fix errors of 0.15 m lasting seconds) they put the noise at the 5 mm floor
     config = EkfConfig(ips_sigma_m=0.03, ips_sigma_min_m=0.005)
-    gate = FixGate(
-        config,
-        dict.fromkeys(("fixes_accepted", "fixes_rejected", "recoveries", "fixes_seeded"), 0),
-        Modes(heading_known=True),
-    )
+    gate = _gate(config)
     gate.trust_quieter_fixes(0.08**2)  # a fit found their errors persisting, with 8 cm of noise
     assert gate.r == pytest.approx(0.08**2)  # taken at once, not only when the next innovations come
     quiet = 0.01
-    for _ in range(40):
-        inn = ekf.Innovation(quiet * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)  # P = 0: S = R
-        gate._learn_noise(inn, gate.r)
+    _learn_from(gate, quiet)
     assert gate.r == pytest.approx(0.08**2)
     loud = 0.12  # a noisier IPS is still followed above that floor
-    for _ in range(40):
-        inn = ekf.Innovation(loud * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)
-        gate._learn_noise(inn, gate.r)
+    _learn_from(gate, loud)
     assert gate.r == pytest.approx(loud**2, rel=0.05)
     gate.trust_quieter_fixes(0.0)  # judged independent after all: the quiet innovations are believed again
-    for _ in range(40):
-        inn = ekf.Innovation(quiet * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)
-        gate._learn_noise(inn, gate.r)
+    _learn_from(gate, quiet)
     assert gate.r == pytest.approx(quiet**2, rel=0.05)
     gate.trust_quieter_fixes(1.0)  # never above the configured ceiling
     assert gate.r == pytest.approx(config.ips_sigma_max_m**2)
