@@ -133,8 +133,7 @@ def test_librsf_real_data_beats_its_dead_reckoning_and_its_fixes(tmp_path: Path)
     assert ours.max_m <= min(b.max_m for b in baselines if b is not None)
     assert result.calibration.fix_correlation > 0.5
     assert result.calibration.kx == 1.0  # no window held enough independent fixes to move the odometry's scales
-    learning = replay(log, parse("ekf: {adaptive_process_noise: true}"))
-    assert learning.process_noise_scale == 1.0  # nor to learn the process noise from: their errors persist
+    assert result.process_noise_scale == 1.0  # nor to learn the process noise from: their errors persist
     honesty = result.consistency["ekf"]
     assert honesty.inside_95 is not None
     # honest once the fixes are judged: the noise estimate keeps the fix noise the windows saw (the innovations see
@@ -205,9 +204,9 @@ def test_a_log_in_unix_time_replays_as_the_same_log_from_zero() -> None:
 def test_a_flat_floor_earns_a_smaller_process_noise_than_a_rough_one_and_a_smaller_error_for_it() -> None:
     flat = sim_config(traction_mean=1.0, traction_wheel_spread=0.004, floor_amplitude=0.005, ips_noise_m=0.02)
     log = simulated(flat, 2, loops=2)
-    learning = dataclasses.replace(flat, ekf=dataclasses.replace(flat.ekf, adaptive_process_noise=True))
+    learning = flat  # on by default
     learnt = replay(log, learning)
-    configured = replay(log, flat)  # off by default
+    configured = replay(log, dataclasses.replace(flat, ekf=dataclasses.replace(flat.ekf, adaptive_process_noise=False)))
     assert configured.process_noise_scale == 1.0
     assert learnt.process_noise_scale < 0.7  # the configured odometry noise is sized for config/sim.yaml's rough floor
     assert learnt.metrics is not None
