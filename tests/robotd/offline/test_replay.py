@@ -204,8 +204,7 @@ def test_a_log_in_unix_time_replays_as_the_same_log_from_zero() -> None:
 def test_a_flat_floor_earns_a_smaller_process_noise_than_a_rough_one_and_a_smaller_error_for_it() -> None:
     flat = sim_config(traction_mean=1.0, traction_wheel_spread=0.004, floor_amplitude=0.005, ips_noise_m=0.02)
     log = simulated(flat, 2, loops=2)
-    learning = flat  # on by default
-    learnt = replay(log, learning)
+    learnt = replay(log, flat)  # learnt by default
     configured = replay(log, dataclasses.replace(flat, ekf=dataclasses.replace(flat.ekf, adaptive_process_noise=False)))
     assert configured.process_noise_scale == 1.0
     assert learnt.process_noise_scale < 0.7  # the configured odometry noise is sized for config/sim.yaml's rough floor
@@ -218,5 +217,4 @@ def test_a_flat_floor_earns_a_smaller_process_noise_than_a_rough_one_and_a_small
     assert learnt.consistency["ekf"].inside_95 is not None
     assert learnt.consistency["ekf"].inside_95 >= 0.85  # smaller, and still honest
     rough = sim_config(ips_noise_m=0.02)
-    rough = dataclasses.replace(rough, ekf=learning.ekf)
     assert replay(simulated(rough, 2, loops=2), rough).process_noise_scale > learnt.process_noise_scale
