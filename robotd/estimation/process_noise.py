@@ -11,6 +11,9 @@ filter that trusts odometry more corrects it more slowly, so short lags alone wo
 scale. The scale moves in log space by a small step times the summed correlation, bounded, and so settles where the
 innovations are white. Fix errors that persist on their own (multipath, judged by the calibration's windows) also
 make innovations persist whatever the gain: the scale then goes back to its prior, for it cannot be told from them.
+The step itself adapts (Kesten's rule): it starts large, so that a wrong prior is left within about 30 s, and shrinks
+each time the summed correlation of a block of updates changes sign, for the scale then oscillates about where the
+innovations are white; blocks that agree in sign several times running grow it back (the floor changed).
 Pure.
 """
 
@@ -19,11 +22,16 @@ from __future__ import annotations
 import math
 from collections import deque
 
-STEP = 0.03  # log-scale change per unit of summed correlation: the scale settles within about 30 s of driving (on
-# the flat-floor virtual robot it is a tenth of the prior by then; 0.006 was still at 0.4 after 47 s), at the price of
-# a wide wander: on config/sim.yaml's square (6 loops, seeds 1-3, after the first minute) its log spreads by 0.9-1.0
-# and touches both bounds, where 0.006 kept it within 0.3 (symmetric: the sum is heavy-tailed, and unequal steps up
-# and down ran the scale to its upper bound on white innovations)
+STEP = 0.03  # log-scale change per unit of summed correlation while the scale is leaving its prior: it settles
+# within about 30 s of driving (on the flat-floor virtual robot it is a tenth of the prior by then; 0.006 was still
+# at 0.4 after 47 s). Symmetric: the sum is heavy-tailed, and unequal steps up and down ran the scale to its upper
+# bound on white innovations
+STEP_SETTLED = 0.006  # the smallest step, reached once the sign keeps changing: held at STEP, the scale's log spread
+# by 0.9-1.0 over minutes of config/sim.yaml's square and touched both bounds; 0.006 alone kept it within 0.3
+BLOCK = 24  # learning updates per block whose summed correlation's sign is watched (2 s of fixes at 12 Hz)
+SHRINK = 0.8  # the step's factor at a change of sign, and its inverse after GROW_AFTER blocks of one sign: on white
+GROW_AFTER = 4  # innovations a change comes every other block and such a run every eighth, so the step shrinks to
+# STEP_SETTLED within about a minute, while a scale leaving its prior sees one sign and keeps STEP
 LAGS = 128  # each new innovation is paired with at most this many before it, within SPAN_S
 SPAN_S = 8.0  # short lags see the fixes' noise chased, long ones the odometry's drift left unfollowed: both count
 MIN_MOTION_M = 0.005  # no pair when the robot hardly moved since the fix before: at rest the odometry adds no noise
@@ -39,6 +47,10 @@ class ProcessNoiseScale:
         self.low = low
         self.high = high
         self.value = 1.0
+        self.step = STEP  # the log-scale change per unit of summed correlation (Kesten's rule, see the docstring)
+        self._block = (0, 0.0)  # learning updates in the current block, and their summed correlation
+        self._sign = 0.0  # of the last whole block's summed correlation (0: none yet)
+        self._run = 0  # blocks of that sign in a row
         self.pairs = 0  # pairs of innovations learnt from
         self._window: deque[tuple[float, float, float, float]] = deque()  # t, wx, wy, |w|^2 of the last SPAN_S
         self._sum = (0.0, 0.0, 0.0)  # of wx, wy, |w|^2 over the window: each new innovation costs O(1)
@@ -48,6 +60,7 @@ class ProcessNoiseScale:
         """Back to the prior, 1, forgetting the innovations; returns whether the scale changed."""
         changed = self.value != 1.0
         self.value = 1.0
+        self.step, self._block, self._sign, self._run = STEP, (0, 0.0), 0.0, 0
         self.forget()
         return changed
 
@@ -87,12 +100,31 @@ class ProcessNoiseScale:
             if mean_energy > 0.0:
                 correlation = (wx * sx + wy * sy) / mean_energy
                 self.pairs += len(window)
-                value = min(max(self.value * math.exp(STEP * correlation), self.low), self.high)
+                value = min(max(self.value * math.exp(self.step * correlation), self.low), self.high)
+                self._adapt_step(correlation)
                 changed = value != self.value
                 self.value = value
         window.append((t, wx, wy, energy))
         self._sum = (sx + wx, sy + wy, se + energy)
         return changed
+
+    def _adapt_step(self, correlation: float) -> None:
+        """Count one update's correlation into the block; at the block's end, shrink the step on a change of sign
+        and grow it back after GROW_AFTER blocks of one sign."""
+        n, total = self._block[0] + 1, self._block[1] + correlation
+        if n < BLOCK:
+            self._block = (n, total)
+            return
+        self._block = (0, 0.0)
+        sign = math.copysign(1.0, total)
+        if self._sign not in (0.0, sign):
+            self.step = max(self.step * SHRINK, STEP_SETTLED)
+            self._run = 1
+        else:
+            self._run += 1
+            if self._run >= GROW_AFTER:
+                self.step = min(self.step / SHRINK, STEP)
+        self._sign = sign
 
 
 __all__ = ["ProcessNoiseScale"]

@@ -6,7 +6,7 @@ import math
 import random
 import statistics
 
-from robotd.estimation.process_noise import SPAN_S, ProcessNoiseScale
+from robotd.estimation.process_noise import SPAN_S, STEP, STEP_SETTLED, ProcessNoiseScale
 
 PERIOD_S = 0.1  # a fix every 0.1 s, the robot driving 0.3 m/s
 
@@ -91,3 +91,22 @@ def test_pairs_never_span_a_forgotten_fix_or_a_gap_longer_than_the_span() -> Non
     assert (scale.pairs, scale.value) == (1, before)
     scale.on_innovation(0.2 + SPAN_S + 0.1, (1.0, 0.0), 1.0, (1.0, 0.0), learn=True)
     assert (scale.pairs, scale.value) == (1, before)
+
+
+def test_the_step_shrinks_once_the_scale_settles_and_grows_back_when_the_innovations_persist() -> None:
+    for seed in range(5):
+        leaving = ProcessNoiseScale(0.01, 100.0)
+        feed(leaving, sequence(100, 10 + seed, chased=0.8))
+        assert leaving.step == STEP  # leaving a wrong prior: every block says the same, the step stays large
+    scale = ProcessNoiseScale(0.01, 100.0)
+    feed(scale, sequence(1500, 6))  # white: the summed correlation changes sign from block to block
+    assert scale.step == STEP_SETTLED
+    steps = []
+    for k in range(300):  # then the floor changes: a drift no longer followed, innovations of one sign
+        t = (1500 + k) * PERIOD_S
+        scale.on_innovation(t, (1.0, 0.5), 1.0, (0.3 * t, 0.0), learn=True)
+        steps.append(scale.step)
+    assert steps[0] == STEP_SETTLED
+    assert steps[-1] == STEP  # back within (GROW_AFTER + log(STEP / STEP_SETTLED) / -log(SHRINK)) blocks
+    scale.reset()
+    assert (scale.value, scale.step) == (1.0, STEP)
