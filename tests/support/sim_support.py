@@ -2,21 +2,14 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Any
 
-from paths import REPO
+from sim_logs import sim_config
 
-from robotd.config.model import RobotdConfig, load
+from robotd.config.model import RobotdConfig
 from robotd.kinematics import Geometry, forward
 from robotd.logs.sensorlog import Event, Truth, Wheels
-
-
-def sim_config(**sim_overrides: Any) -> RobotdConfig:
-    """config/sim.yaml with some `sim` keys replaced."""
-    config = load(REPO / "config" / "sim.yaml")
-    return dataclasses.replace(config, sim=dataclasses.replace(config.sim, **sim_overrides))
 
 
 def perfect_config(**sim_overrides: Any) -> RobotdConfig:

@@ -10,7 +10,8 @@ import statistics
 from pathlib import Path
 
 import pytest
-from sim_support import perfect_config, sim_config
+from sim_logs import sim_config
+from sim_support import perfect_config
 
 from drivers.virtual.marvelmind import POSITION_CM
 from robotd.cli import main

@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 
 import pytest
-from sim_support import odometry_errors, perfect_config, sim_config
+from sim_logs import sim_config
+from sim_support import odometry_errors, perfect_config
 
 from robotd.kinematics import Geometry, Twist, inverse
 from robotd.logs.sensorlog import Event, IpsFix, Truth
