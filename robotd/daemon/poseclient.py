@@ -62,6 +62,16 @@ def connect(path: str, timeout_s: float | None = None) -> socket.socket:
     return sock
 
 
+def accepts(path: str) -> bool:
+    """Whether the pose socket at `path` accepts a connection now (its file appears at bind, a moment before the
+    daemon listens: waiting for the file alone lets a busy machine refuse the first client)."""
+    try:
+        connect(path).close()
+    except OSError:
+        return False
+    return True
+
+
 def messages(sock: socket.socket) -> Iterator[PoseSocketMessage]:
     """Every line the daemon sends on `sock`, until it hangs up (or the socket is shut down)."""
     with sock.makefile("r", encoding="utf-8", newline="\n") as stream:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import functools
 import secrets
 import sys
 import threading
@@ -24,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from robotd.config.model import load
+from robotd.daemon import poseclient
 from robotd.fleet.broker import OPERATOR, Broker, BrokerSetup, robot_user
 from robotd.tools.demo import Children, _wait_for, private_config
 from robotd.tools.teleop_client import UdpLink, run_plan, square_plan
@@ -140,8 +142,9 @@ def virtual_fleet(
                 folder = config_path.parent
                 children.start(f"{folder.name} run", ["run", "--config", str(config_path)], folder / "daemon.log")
             for config_path in configs:
-                socket_path = Path(load(config_path).pose_socket.path)
-                _wait_for(socket_path.exists, START_TIMEOUT_S, f"{config_path.parent.name}'s daemon", children)
+                socket_path = load(config_path).pose_socket.path
+                accepting = functools.partial(poseclient.accepts, socket_path)
+                _wait_for(accepting, START_TIMEOUT_S, f"{config_path.parent.name}'s daemon", children)
             if drive:
                 for config_path in configs:
                     driver = threading.Thread(target=_driver, args=(config_path, stop), daemon=True)

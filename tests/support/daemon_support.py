@@ -148,10 +148,18 @@ class Robot:
             "robotd run", ["run", "--config", str(self.config_path)], self.out / "daemon.log"
         )
         path = Path(self.config.pose_socket.path)
-        self._wait(path.exists, "the daemon's pose socket")
-        self.tap = PoseTap(str(path))
+        self._wait(lambda: self._attach_tap(path), "the daemon's pose socket")
         self._wait(lambda: self.tap is not None and bool(self.tap.poses), "the first pose")
         return self.daemon
+
+    def _attach_tap(self, path: Path) -> bool:
+        """Attach the pose tap once the daemon accepts there: its socket file appears at bind, a moment before it
+        listens, and a busy machine can show the file to a client that is then refused."""
+        try:
+            self.tap = PoseTap(str(path))
+        except (FileNotFoundError, ConnectionRefusedError):
+            return False
+        return True
 
     def _pigpiod_listening(self) -> bool:
         with socket.socket() as probe:
