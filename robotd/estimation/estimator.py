@@ -349,9 +349,7 @@ class Estimator:
             inn = ekf.innovation(x, y, th, p, fix.zx, fix.zy, fix.r, *self._offset)
             return self._fuse(state, old.t, (fix.zx, fix.zy, fix.r), inn)
         if fix.seed is not None:
-            r = fix.r
-            p_seed = (r, 0.0, 0.0, r, 0.0, p[5])
-            return Anchor(old.t, x + fix.seed[0], y + fix.seed[1], th, p_seed, fix, ekf.heading_sensitivity(sens))
+            return _seeded(old.t, state, fix, fix.seed)
         return Anchor(old.t, x, y, th, p, fix, sens)
 
     def _fuse(self, prior: State, t: float, z: tuple[float, float, float], inn: ekf.Innovation) -> Anchor:
@@ -372,11 +370,9 @@ class Estimator:
         if verdict is Verdict.RECOVERED:
             self._restart_window()  # carried robots may have been turned too (modes: the heading is unknown again)
             self._heading_check.suspect = None
-        dx, dy = self._fix_gate.seed_shift(verdict)
+        shift = self._fix_gate.seed_shift(verdict)
         zx, zy, r = z
-        p = (r, 0.0, 0.0, r, 0.0, prior[3][5])
-        fix = FixRecord(zx, zy, r, fused=False, seed=(dx, dy))
-        return Anchor(t, prior[0] + dx, prior[1] + dy, prior[2], p, fix, ekf.heading_sensitivity(prior[4]))
+        return _seeded(t, prior, FixRecord(zx, zy, r, fused=False, seed=shift), shift)
 
     # --- heading alignment --------------------------------------------------------------------------
 
@@ -475,6 +471,14 @@ class Estimator:
         if shared > 0.0:
             p = (p[0] + shared, p[1], p[2], p[3] + shared, p[4], p[5])
         return when, x, y, th, u, p
+
+
+def _seeded(t: float, state: State, fix: FixRecord, shift: tuple[float, float]) -> Anchor:
+    """The anchor of a re-seed at t: the state moved by `shift` onto the fixes, its position as uncertain as fix.r
+    and owing nothing to the odometry (its heading and the heading's sensitivity kept)."""
+    x, y, th, p, sens = state
+    r = fix.r
+    return Anchor(t, x + shift[0], y + shift[1], th, (r, 0.0, 0.0, r, 0.0, p[5]), fix, ekf.heading_sensitivity(sens))
 
 
 __all__ = ["Diagnostics", "Estimator", "PoseEstimate", "PositionMode", "Verdict"]
