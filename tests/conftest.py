@@ -17,6 +17,7 @@ import pigpio
 import pytest
 from mosquitto import mosquitto, write_key
 
+from drivers.pigpiod.client import stop_pigpio_client
 from drivers.virtual.pigpiod import VirtualPigpiod
 from robotd.fleet.broker import Broker
 
@@ -34,10 +35,7 @@ def pi(server: VirtualPigpiod) -> Iterator[Any]:
     client = pigpio.pi("127.0.0.1", server.port, show_errors=False)
     assert client.connected
     yield client
-    notifications = client._notify  # pigpio's stop() does not wait for its notification thread to see the close
-    client.stop()
-    if notifications is not None:
-        notifications.join(5.0)  # before the server goes: its close would reset the socket under the thread's recv
+    stop_pigpio_client(client)
 
 
 @pytest.fixture

@@ -14,6 +14,7 @@ import socket
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from drivers.pigpiod.protocol import COMMAND, EXTENDED_ANSWERS, Cmd, Err, decode_result, encode_command
 
@@ -213,6 +214,31 @@ async def open_notification_socket(host: str, port: int, timeout_s: float) -> tu
         sock.close()
         raise PigpioCommandError(Cmd.NOIB, 0, 0, handle)
     return handle, sock
+
+
+def stop_pigpio_client(pi: Any, timeout_s: float = 1.0) -> None:
+    """Stop a `pigpio.pi` client once its notification thread has ended (blocking; see end_pigpio_notifications)."""
+    end_pigpio_notifications(pi, timeout_s)
+    pi.stop()
+
+
+def end_pigpio_notifications(pi: Any, timeout_s: float = 1.0) -> None:
+    """End a `pigpio.pi` client's notification thread and wait for it, up to `timeout_s`; its commands still work."""
+    # pigpio's notification thread loops on recv() until its `go` flag drops; `pi.stop()` drops it and sends NC on
+    # the thread's socket. If pigpiod closed that socket first, the thread spins on end-of-file, and NC draws a reset
+    # that its recv() can raise in that thread; if pigpiod is slow, the thread outlives the client and sees whatever
+    # happens to the socket later. So end the thread here: drop the flag, shut the socket's reading side (its recv
+    # returns at once, nothing is sent), wait for it; `pi.stop()` then sends no NC. pigpiod frees the handle when
+    # the thread closes the socket. `_notify` and `sl` are the pigpio library's private names (it has been at 1.78
+    # since 2020).
+    notify = getattr(pi, "_notify", None)
+    if notify is None:
+        return
+    notify.go = False
+    with contextlib.suppress(OSError, AttributeError):  # already closed, or never opened
+        notify.sl.s.shutdown(socket.SHUT_RD)
+    if notify.is_alive():
+        notify.join(timeout_s)
 
 
 def probe(host: str, port: int, timeout_s: float) -> None:

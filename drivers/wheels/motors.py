@@ -21,7 +21,7 @@ from collections.abc import Iterator
 from types import FrameType, TracebackType
 from typing import Any, Protocol, Self
 
-from drivers.pigpiod.client import CommandPipe, PigpiodUnavailableError, probe
+from drivers.pigpiod.client import CommandPipe, PigpiodUnavailableError, probe, stop_pigpio_client
 from drivers.pigpiod.deadman import remove_deadmen
 from drivers.pigpiod.protocol import Cmd
 from drivers.settings import MotorPinsLike, MotorSettings, PigpiodAddress, in_wheel_order
@@ -206,7 +206,7 @@ class GpiozeroMotors:
         # gpiozero's close returns its pins to inputs, which would leave the L298's inputs floating; on a stopped
         # connection it writes nothing, so stop it first and let gpiozero only forget its devices.
         with contextlib.suppress(Exception):
-            self._pi.stop()
+            stop_pigpio_client(self._pi, self._flush_timeout_s)
         # Each release on its own: with pigpiod gone every one fails, and one failure must not leave the rest
         # (and the factory) for gpiozero's finalisers to retry and report at exit.
         for channel in self._channels:
@@ -251,7 +251,7 @@ def stop_all_motors(motors: MotorSettings, pigpiod: PigpiodAddress) -> None:
             pi.write(gpio, 0)  # also stops PWM on the pin
         remove_deadmen(pi, [*enables, *directions])
     finally:
-        pi.stop()
+        stop_pigpio_client(pi, pigpiod.connect_timeout_s)
 
 
 @contextlib.contextmanager

@@ -42,6 +42,7 @@ from typing import Any
 
 import yaml
 
+from drivers.pigpiod.client import stop_pigpio_client
 from robotd.bench.flood import blast_from_child
 from robotd.bench.flood import flood as flood  # noqa: PLC0414 - re-exported: the load test imports them from here
 from robotd.bench.flood import hostile_datagrams as hostile_datagrams  # noqa: PLC0414
@@ -312,7 +313,7 @@ def run(quick: bool) -> dict[str, float]:
                 if daemon.poll() is not None:
                     raise RuntimeError(f"the daemon exited with {daemon.returncode} during the benchmark")
             finally:
-                pi.stop()
+                stop_pigpio_client(pi)
                 link.sock.close()
                 clients.close()
     return figures

@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 import pigpio
 
-from drivers.pigpiod.client import PigpiodUnavailableError
+from drivers.pigpiod.client import PigpiodUnavailableError, stop_pigpio_client
 from drivers.pigpiod.protocol import REPORT_SIZE, encode_reports
 from drivers.virtual.quadrature_signal import encoder_words, merge_streams, position_of_state
 from drivers.wheels.encoders import PigpioEncoders, wiring
@@ -105,7 +105,7 @@ class CallbackEncoders:
         """Cancel the callbacks and disconnect."""
         for callback in self._callbacks:
             callback.cancel()
-        self._pi.stop()
+        stop_pigpio_client(self._pi)
 
 
 @dataclass(frozen=True, slots=True)

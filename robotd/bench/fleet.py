@@ -31,6 +31,7 @@ from typing import Any
 import aiomqtt
 import pigpio
 
+from drivers.pigpiod.client import stop_pigpio_client
 from robotd.bench.daemon import cpu_seconds
 from robotd.config.model import WHEELS, load
 from robotd.fleet import topics
@@ -139,7 +140,7 @@ def _stop_latencies(repeats: int) -> list[float]:
                 asyncio.run(_publish(fleet, Action.RELEASE))
         finally:
             for pi in pis:
-                pi.stop()
+                stop_pigpio_client(pi)
     return latencies
 
 

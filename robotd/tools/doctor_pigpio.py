@@ -12,7 +12,7 @@ import contextlib
 from collections.abc import AsyncIterator, Callable, Sequence
 from typing import Any
 
-from drivers.pigpiod.client import PigpiodUnavailableError, probe
+from drivers.pigpiod.client import PigpiodUnavailableError, probe, stop_pigpio_client
 from drivers.pigpiod.protocol import Mode
 from drivers.wheels.encoders import PigpioEncoders
 from drivers.wheels.motors import command_duty, wheel_pins
@@ -47,7 +47,7 @@ def reach(config: RobotdConfig) -> str:
         version = pi.get_pigpio_version()
         revision = pi.get_hardware_revision()
     finally:
-        pi.stop()
+        stop_pigpio_client(pi)
     return f"pigpiod {version} at {config.pigpiod.host}:{config.pigpiod.port}, hardware revision {revision:x}"
 
 
@@ -57,7 +57,7 @@ def pin_modes(config: RobotdConfig, pins: Sequence[int]) -> dict[int, str]:
     try:
         return {pin: Mode(pi.get_mode(pin)).name.lower() for pin in pins}
     finally:
-        pi.stop()
+        stop_pigpio_client(pi)
 
 
 class PigpioWheelDrive:
@@ -97,7 +97,7 @@ class PigpioWheelDrive:
         try:
             self.stop()
         finally:
-            self._pi.stop()
+            stop_pigpio_client(self._pi)
 
 
 @contextlib.asynccontextmanager

@@ -21,6 +21,7 @@ from typing import Any
 import pigpio
 from paths import REPO
 
+from drivers.pigpiod.client import stop_pigpio_client
 from robotd.config.model import WHEELS, MotorPins, RobotdConfig, load
 from robotd.daemon import poseclient
 from robotd.kinematics import Twist
@@ -194,7 +195,7 @@ class Robot:
         if self.tap is not None:
             self.tap.close()
         if self.pi is not None:
-            self.pi.stop()
+            stop_pigpio_client(self.pi)
         self.children.stop_all()
 
     # --- what a person sees and does ---------------------------------------------------------------------------

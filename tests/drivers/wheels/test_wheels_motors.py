@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import socket
 import subprocess
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -60,6 +61,26 @@ def test_motors_are_zeroed_when_the_program_raises(server: VirtualPigpiod) -> No
     with pytest.raises(RuntimeError, match="control loop failed"):
         control_loop_that_fails()
     assert [duty for duty, _, _ in outputs(server, motors)] == [0.0] * 4
+
+
+def test_close_ends_the_pigpio_client_thread(server: VirtualPigpiod) -> None:
+    motors = GpiozeroMotors(MotorsConfig(), PigpiodConfig(port=server.port))
+    thread = motors._pi._notify  # pigpio's notification thread for this client
+    motors.set_duties((0.4, -0.4, 0.4, 0.4))
+    motors.close()
+    # Left running, it would read its socket after pigpiod closed it (a reset raised in the thread, at random)
+    assert not thread.is_alive()
+    wait_until(lambda: server.notify_handles() == {})  # pigpiod freed the handle with the socket
+
+
+def test_close_after_pigpiod_went_away_ends_the_client_thread() -> None:
+    with VirtualPigpiod() as gone:
+        motors = GpiozeroMotors(MotorsConfig(), PigpiodConfig(port=gone.port, connect_timeout_s=0.5))
+        thread = motors._pi._notify
+    time.sleep(0.05)  # pigpio's thread now loops on the closed socket's end-of-file
+    assert thread.is_alive()
+    motors.close()
+    assert not thread.is_alive()
 
 
 def test_stop_all_motors_leaves_every_motor_pin_an_output_driven_low(server: VirtualPigpiod) -> None:

@@ -18,6 +18,7 @@ from gpiozero.pins.pigpio import PiGPIOFactory
 from process_support import python_child
 from wheels_support import wait_until
 
+from drivers.pigpiod.client import end_pigpio_notifications, stop_pigpio_client
 from drivers.pigpiod.protocol import COMMAND, REPORT_SIZE, Cmd, decode_reports, decode_result, encode_command
 from drivers.virtual.pigpiod import PI4B_4GB, VirtualPigpiod
 
@@ -35,6 +36,7 @@ def server() -> Iterator[VirtualPigpiod]:
 def factory(server: VirtualPigpiod) -> Iterator[Any]:
     pin_factory = PiGPIOFactory(host="127.0.0.1", port=server.port)
     yield pin_factory
+    end_pigpio_notifications(pin_factory.connection)  # gpiozero's close releases its pins, then stops the client
     pin_factory.close()
 
 
@@ -208,7 +210,7 @@ def test_robotd_vpigpiod_serves_alone_until_sigterm() -> None:
         assert f"127.0.0.1:{port}" in process.stdout.readline()
         client = pigpio.pi("127.0.0.1", port, show_errors=False)
         assert client.get_hardware_revision() == PI4B_4GB
-        client.stop()
+        stop_pigpio_client(client)
         process.send_signal(signal.SIGTERM)
         process.communicate(timeout=10)
     finally:
