@@ -17,6 +17,7 @@ import pigpio
 import pytest
 from paths import REPO
 
+from drivers.pigpiod.client import stop_pigpio_client
 from drivers.pigpiod.protocol import Mode
 from drivers.virtual.pigpiod import VirtualPigpiod
 from robotd.cli import main
@@ -56,7 +57,7 @@ def drive(server: VirtualPigpiod, pins: list[tuple[int, int, int]]) -> None:
             pi.write(in2, 0)
             pi.set_PWM_dutycycle(enable, 242)
     finally:
-        pi.stop()
+        stop_pigpio_client(pi)
     assert all(server.pwm_duty(enable) > 0.9 for enable, _, _ in pins)
 
 

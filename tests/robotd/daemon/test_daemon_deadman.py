@@ -21,6 +21,7 @@ import pigpio
 import pytest
 from daemon_support import robot_config, running_robot, wait_until
 
+from drivers.pigpiod.client import stop_pigpio_client
 from drivers.pigpiod.deadman import TRIPS, find_deadmen
 from drivers.pigpiod.protocol import Mode
 from drivers.virtual.l298 import Channel, bridge_rule_violations
@@ -106,7 +107,7 @@ class BareDaemon:
 
     def close(self) -> None:
         self.link.sock.close()
-        self.pi.stop()
+        stop_pigpio_client(self.pi)
         self.children.stop_all()
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 from daemon_support import robot_config, running_robot, wait_until
 
+from drivers.pigpiod.client import stop_pigpio_client
 from robotd.kinematics import Twist
 
 pytestmark = pytest.mark.slow
@@ -101,7 +102,7 @@ def crash_run(tmp_path_factory: pytest.TempPathFactory) -> CrashRun:
         robot.vhw.kill()
         robot.vhw.wait()
         with contextlib.suppress(OSError):  # the client library trips over its own dead socket
-            robot.pi.stop()
+            stop_pigpio_client(robot.pi)
         wait_until(lambda: "reconnecting to pigpiod" in robot.daemon_log(), 2.0, "the daemon to notice")
         assert robot.daemon.poll() is None, robot.logs()
         robot.pi = None

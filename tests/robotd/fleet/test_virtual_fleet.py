@@ -23,6 +23,7 @@ from inprocess_daemon import until
 from mosquitto import require_mosquitto
 from paths import REPO
 
+from drivers.pigpiod.client import stop_pigpio_client
 from robotd.config.model import WHEELS, load
 from robotd.fleet import topics
 from robotd.fleet.orders import Action
@@ -106,4 +107,4 @@ async def test_a_virtual_fleet_on_one_broker(tmp_path: Path) -> None:
             for tap in taps:
                 tap.close()
             for pi in pis:
-                pi.stop()
+                stop_pigpio_client(pi)

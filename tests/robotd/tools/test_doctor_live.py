@@ -17,6 +17,7 @@ import pigpio
 import pytest
 from paths import REPO
 
+from drivers.pigpiod.client import stop_pigpio_client
 from drivers.pigpiod.protocol import Mode
 from drivers.virtual.pigpiod import VirtualPigpiod
 from robotd.config.model import WHEELS, RobotdConfig, load, parse
@@ -66,7 +67,7 @@ def test_the_pigpio_back_end_drives_one_wheel_and_leaves_every_motor_pin_low(vpi
         modes = pin_modes(config, [2, 12])
         assert modes == {2: "input", 12: "output"}
     finally:
-        pi.stop()
+        stop_pigpio_client(pi)
 
 
 def test_the_pigpio_back_end_says_how_to_start_pigpiod_when_absent() -> None:
@@ -180,7 +181,7 @@ def test_doctor_spin_beside_the_virtual_robot_and_daemon_passes_and_leaves_the_d
             time.sleep(0.05)
     finally:
         link.close()
-        pi.stop()
+        stop_pigpio_client(pi)
 
 
 @pytest.mark.slow
