@@ -118,13 +118,15 @@ class Daemon:
         self.clock = clock
         robot = config.robot
         self.geometry = Geometry(robot.wheel_radius_m, robot.lx_m, robot.ly_m)
+        saved = calibration_store.load(config.ekf.calibration_file)
         self.estimator = Estimator(
             config.ekf,
             self.geometry,
             robot.ips_offset_m,
             config.encoders.counts_per_rev,
             default_latency_s=config.marvelmind.default_latency_s,
-            calibration=calibration_store.load(config.ekf.calibration_file),
+            calibration=None if saved is None else saved.calibration,
+            noise=None if saved is None else saved.noise,
         )
         self._calibration_keeper = calibration_store.CalibrationKeeper(config.ekf.calibration_file)
         self.controller = MotionController(
@@ -270,7 +272,9 @@ class Daemon:
         finally:
             self._zero_motors()  # first, whatever happened
             await self.deadman.uninstall()
-            self._calibration_keeper.maybe_save(self.estimator.calibration, self.clock(), force=True)
+            self._calibration_keeper.maybe_save(
+                self.estimator.calibration, self.clock(), force=True, noise=self.estimator.learnt_noise
+            )
             self.notifier.stopping("stopping")
             for signum in SHUTDOWN_SIGNALS:
                 loop.remove_signal_handler(signum)
@@ -492,6 +496,7 @@ class Daemon:
             **estimator.counters,
             "calibration": estimator.calibration.as_dict(),
             "process_noise_scale": round(estimator.process_noise_scale, 4),
+            "ips_sigma_m": round(math.sqrt(estimator.learnt_noise.ips_var), 5),
         }
         return posesock.status_message(t=now, stamp=time.time(), drivers=drivers, filter_diagnostics=diagnostics)
 
@@ -508,7 +513,7 @@ class Daemon:
             if control_ok and filter_ok:
                 self.notifier.watchdog()
             # here, not with the status: the status is built only for readers, the calibration is kept regardless
-            self._calibration_keeper.maybe_save(self.estimator.calibration, now)
+            self._calibration_keeper.maybe_save(self.estimator.calibration, now, noise=self.estimator.learnt_noise)
             estimate = self.estimator.pose(now)
             health = self.marvelmind.health(now)
             self.notifier.status(

@@ -134,7 +134,9 @@ class Calibrator:
         self.fix_correlated_var = start.fix_correlated_var
         self.fix_correlation = start.fix_correlation
         self.fix_var = start.fix_var
-        self._data_correlation = 0.0  # of the residuals of each window's fit on its data alone, smoothed
+        # of the residuals of each window's fit on its data alone, smoothed; a saved judgement's correlation until
+        # this run's windows say otherwise (0 would let the first window after a restart fit correlated fixes)
+        self._data_correlation = start.fix_correlation
         self._heading_judged = False  # judge_fixes has judged the fixes (before any window)
         self._fitted_at = math.nan
         self._clamp()

@@ -65,6 +65,15 @@ class PoseEstimate:
     state: PositionMode
 
 
+@dataclass(frozen=True, slots=True)
+class LearntNoise:
+    """The noise the filter learnt, kept across restarts beside the calibration: the IPS noise variance per axis in
+    use (m^2) and the factor on the configured odometry noise variances."""
+
+    ips_var: float
+    process_noise_scale: float = 1.0
+
+
 class Estimator:
     """Pose estimation from wheel odometry and IPS fixes (see the module docstring)."""
 
@@ -77,14 +86,16 @@ class Estimator:
         *,
         default_latency_s: float = 0.05,
         calibration: Calibration | None = None,
+        noise: LearntNoise | None = None,
     ) -> None:
         """`default_latency_s`: the delay assumed at first for fixes without a measurement time; `calibration`: where
-        the odometry calibration starts (a saved one), else from the configuration."""
+        the odometry calibration starts (a saved one), else from the configuration; `noise`: where the learnt noise
+        starts (a saved one, used only with a calibration that has judged the fixes), else from the configuration."""
         c = self.config = ekf_config
         self.geometry = geometry
         self.counts_per_rev = counts_per_rev
         self._offset = ips_offset_m if c.lever_arm else (0.0, 0.0)
-        noise = ekf.ControlNoise(
+        control_noise = ekf.ControlNoise(
             lin2=c.odom_along_sigma_m**2,
             lat2=c.odom_across_sigma_m**2,
             slip2=c.slip_heading_sigma_rad**2,
@@ -94,7 +105,7 @@ class Estimator:
         )
         self.modes = Modes(heading_known=c.initial_sigma[2] <= c.unknown_heading_sigma_rad)
         self._track = OdometryTrack(midpoint=c.midpoint_heading)
-        self._predictor = Predictor(noise, self.modes, midpoint=c.midpoint_heading)
+        self._predictor = Predictor(control_noise, self.modes, midpoint=c.midpoint_heading)
         if calibration is None:
             kx, ky, kw = c.odometry_scale
             sigmas = (c.scale_sigma, c.scale_sigma, c.scale_sigma, LATENCY_PRIOR_SIGMA_S, TIME_CHECK_SIGMA_S)
@@ -139,12 +150,18 @@ class Estimator:
             0,
         )
         self._fix_gate = FixGate(c, self.counters, self.modes)
+        judged = self._calibrator is not None and self._calibrator.judged  # a saved calibration judged the fixes
+        if not judged:
+            noise = None  # noise learnt before the fixes were judged may be a shared error's agreement
         self._process_noise: ProcessNoiseScale | None = None  # off: the configured noise, and no work per fix
         if c.adaptive_process_noise:
-            self._process_noise = ProcessNoiseScale(c.process_noise_scale_min, c.process_noise_scale_max)
-        if self._calibrator is not None and self._calibrator.judged:
-            # a saved calibration has judged this installation's fixes
+            start = 1.0 if noise is None else noise.process_noise_scale
+            self._process_noise = ProcessNoiseScale(c.process_noise_scale_min, c.process_noise_scale_max, start)
+            self._predictor.scale_noise(self._process_noise.value)
+        if judged:
             self._fix_gate.trust_quieter_fixes(calibration.persistent_fix_var)
+            if noise is not None:
+                self._fix_gate.start_noise(noise.ips_var)
 
     # --- inputs -----------------------------------------------------------------------------------
 
@@ -309,6 +326,11 @@ class Estimator:
         s = 0.5 * (inn.s_xx + inn.s_yy)
         if scale.on_innovation(t_meas, (inn.nu_x, inn.nu_y), s, (dist, pose[2]), learn=learn):
             self._predictor.scale_noise(scale.value)
+
+    @property
+    def learnt_noise(self) -> LearntNoise:
+        """The IPS noise variance and the process noise scale in use, for the next start."""
+        return LearntNoise(self._fix_gate.r, self.process_noise_scale)
 
     @property
     def process_noise_scale(self) -> float:
@@ -481,4 +503,4 @@ def _seeded(t: float, state: State, fix: FixRecord, shift: tuple[float, float]) 
     return Anchor(t, x + shift[0], y + shift[1], th, (r, 0.0, 0.0, r, 0.0, p[5]), fix, ekf.heading_sensitivity(sens))
 
 
-__all__ = ["Diagnostics", "Estimator", "PoseEstimate", "PositionMode", "Verdict"]
+__all__ = ["Diagnostics", "Estimator", "LearntNoise", "PoseEstimate", "PositionMode", "Verdict"]

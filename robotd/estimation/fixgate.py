@@ -114,6 +114,11 @@ class FixGate:
         if c.adaptive_ips_noise:
             self.r = max(self.r, self.r_floor)
 
+    def start_noise(self, variance: float) -> None:
+        """Start the noise estimate at `variance` (what a run before learnt), within the floor and the ceiling."""
+        if self.config.adaptive_ips_noise and math.isfinite(variance):
+            self.r = min(max(variance, self.r_floor), self.config.ips_sigma_max_m**2)
+
     def forget(self) -> None:
         """Drop the rejected fixes and the innovations: what they were measured against is gone."""
         self.rejected.clear()

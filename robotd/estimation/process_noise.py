@@ -41,12 +41,13 @@ CLIP = 3.0  # normalised innovations are clipped to this size: one wild fix cann
 
 class ProcessNoiseScale:
     """The multiplier of the configured odometry noise variances, within [low, high] (low <= 1 <= high, as the
-    configuration requires), learnt from accepted fixes; 1, the configuration itself, until learnt."""
+    configuration requires), learnt from accepted fixes; `start` (bounded) until learnt: 1, the configuration itself,
+    or what a run before learnt."""
 
-    def __init__(self, low: float, high: float) -> None:
+    def __init__(self, low: float, high: float, start: float = 1.0) -> None:
         self.low = low
         self.high = high
-        self.value = 1.0
+        self.value = min(max(start, low), high) if math.isfinite(start) else 1.0
         self.step = STEP  # the log-scale change per unit of summed correlation (Kesten's rule, see the docstring)
         self._block = (0, 0.0)  # learning updates in the current block, and their summed correlation
         self._sign = 0.0  # of the last whole block's summed correlation (0: none yet)

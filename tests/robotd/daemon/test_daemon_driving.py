@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 from daemon_support import Robot, running_robot, wait_until
 
+from robotd.daemon import calibration_store
 from robotd.kinematics import Twist
 
 pytestmark = pytest.mark.slow
@@ -91,7 +92,8 @@ def test_a_client_that_goes_silent_has_the_motors_at_zero_after_the_deadman_time
 def test_sigterm_during_motion_leaves_every_duty_at_zero_and_the_daemon_exits_0_within_a_second(
     tmp_path: Path,
 ) -> None:
-    with running_robot(tmp_path) as robot:
+    kept = tmp_path / "calibration.json"
+    with running_robot(tmp_path, {"ekf": {"calibration_file": str(kept)}}) as robot:
         robot.drive(Twist(0.0, 0.2, 0.3), 0.5)
         assert any(robot.duties()), "the robot was not driving"
         assert robot.daemon is not None
@@ -104,3 +106,7 @@ def test_sigterm_during_motion_leaves_every_duty_at_zero_and_the_daemon_exits_0_
         assert exited < 1.0, f"the daemon took {exited:.2f} s to exit"
         assert robot.duties() == (0.0, 0.0, 0.0, 0.0)
         assert "stopping on signal" in robot.daemon_log()
+    saved = calibration_store.load(str(kept))  # kept on the way out: the calibration, and the noise learnt so far
+    assert saved is not None, robot.logs()
+    assert saved.noise is not None
+    assert saved.noise.ips_var > 0.0
