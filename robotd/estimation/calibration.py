@@ -364,28 +364,77 @@ class _Path:
         self.offset = offset
         self.step_dist = np.hypot(us[:, 0], us[:, 1]) * dts
 
-    def beacon(self, cal: FloatArray, psi: float, when: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """The beacon's position at times `when` on the path integrated with scales cal[:3] and drift psi."""
+    def integrate(self, cal: FloatArray, psi: float) -> _Integrated:
+        """The path integrated with scales cal[:3] and heading drift psi (midpoint headings)."""
         vx, vy, wz = self.us[:, 0] * cal[KX], self.us[:, 1] * cal[KY], self.us[:, 2] * cal[KW]
         dth = wz * self.dts + psi * self.step_dist * cal[KX]
         th_end = np.concatenate([[0.0], np.cumsum(dth)])
         mid = th_end[:-1] + 0.5 * dth
         c, s = np.cos(mid), np.sin(mid)
-        x = np.concatenate([[0.0], np.cumsum((vx * c - vy * s) * self.dts)])
-        y = np.concatenate([[0.0], np.cumsum((vx * s + vy * c) * self.dts)])
-        px = np.interp(when, self.times, x)
-        py = np.interp(when, self.times, y)
-        th = np.interp(when, self.times, th_end)
-        ox, oy = self.offset
+        dx, dy = (vx * c - vy * s) * self.dts, (vx * s + vy * c) * self.dts
+        x = np.concatenate([[0.0], np.cumsum(dx)])
+        y = np.concatenate([[0.0], np.cumsum(dy)])
+        return _Integrated(self, (x, y, th_end), (dx, dy), (c, s))
+
+    def beacon(self, cal: FloatArray, psi: float, when: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The beacon's position at times `when` on the path integrated with scales cal[:3] and drift psi."""
+        return self.integrate(cal, psi).beacon(when)
+
+
+class _Integrated:
+    """One integration of a _Path: the body's position and heading at each step's end, each step's displacement,
+    and the cosine and sine of each step's midpoint heading."""
+
+    def __init__(
+        self,
+        path: _Path,
+        ends: tuple[FloatArray, FloatArray, FloatArray],
+        steps: tuple[FloatArray, FloatArray],
+        mid: tuple[FloatArray, FloatArray],
+    ) -> None:
+        self.path = path
+        self.x, self.y, self.th_end = ends
+        self.dx, self.dy = steps
+        self.c, self.s = mid
+
+    def beacon(self, when: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The beacon's position at times `when` (the body's, interpolated, plus the lever arm turned by the
+        heading)."""
+        times = self.path.times
+        px = np.interp(when, times, self.x)
+        py = np.interp(when, times, self.y)
+        th = np.interp(when, times, self.th_end)
+        ox, oy = self.path.offset
         ct, st = np.cos(th), np.sin(th)
         return px + ox * ct - oy * st, py + ox * st + oy * ct
 
+    def derivative(
+        self, when: FloatArray, d_turn: FloatArray | float, d_step: tuple[FloatArray, FloatArray] | None = None
+    ) -> tuple[FloatArray, FloatArray]:
+        """The beacon's derivative at times `when` in a parameter that changes each step's turn by d_turn and, at a
+        fixed heading, its displacement by d_step (x, y): the chain rule through the midpoint headings, exact for the
+        path as integrated."""
+        # central differences cost two integrations of the path per parameter at each of the fit's iterations: they
+        # were most of a replay's calibration time
+        path = self.path
+        turn = np.broadcast_to(np.asarray(d_turn, dtype=np.float64), self.dx.shape)
+        heading = np.cumsum(turn)
+        mid = heading - 0.5 * turn  # each step's midpoint heading's change
+        gx, gy = -self.dy * mid, self.dx * mid  # a step turned by a small angle moves across itself
+        if d_step is not None:
+            gx, gy = gx + d_step[0], gy + d_step[1]
+        times = path.times
+        px = np.interp(when, times, np.concatenate([[0.0], np.cumsum(gx)]))
+        py = np.interp(when, times, np.concatenate([[0.0], np.cumsum(gy)]))
+        dth = np.interp(when, times, np.concatenate([[0.0], heading]))
+        th = np.interp(when, times, self.th_end)
+        ox, oy = path.offset
+        ct, st = np.cos(th), np.sin(th)
+        return px - (ox * st + oy * ct) * dth, py + (ox * ct - oy * st) * dth
 
-def _model(path: _Path, params: FloatArray, stated: FloatArray, timed: npt.NDArray[np.bool_]) -> FloatArray:
-    """Predicted fixes (n x 2) for params = (phi, tx, ty, psi, kx, ky, kw, tau_u, tau_k)."""
-    phi, tx, ty, psi = params[:N_NUISANCE]
-    cal = params[N_NUISANCE:]
-    bx, by = path.beacon(cal, float(psi), _measured(stated, timed, cal))
+
+def _place(phi: float, tx: float, ty: float, bx: FloatArray, by: FloatArray) -> FloatArray:
+    """Beacon positions (bx, by) on the window's path placed in the world: turned by phi, moved by (tx, ty)."""
     c, s = math.cos(phi), math.sin(phi)
     return np.stack([tx + c * bx - s * by, ty + s * bx + c * by], axis=1)
 
@@ -393,20 +442,43 @@ def _model(path: _Path, params: FloatArray, stated: FloatArray, timed: npt.NDArr
 def _residuals_and_jacobian(
     path: _Path, params: FloatArray, stated: FloatArray, timed: npt.NDArray[np.bool_], zs: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """Residuals z - f (n x 2) and the Jacobian of f (n x 2 x parameters), by central differences but for T."""
-    f0 = _model(path, params, stated, timed)
+    """Residuals z - f (n x 2) and the Jacobian of f (n x 2 x parameters), all from one integration of the path:
+    exact for the placement, the drift and the scales (_Integrated.derivative), central differences in time for the
+    delays (the path is piecewise linear in time)."""
+    phi, tx, ty, psi = (float(v) for v in params[:N_NUISANCE])
+    cal = params[N_NUISANCE:]
+    integrated = path.integrate(cal, psi)
+    when = _measured(stated, timed, cal)
+    bx, by = integrated.beacon(when)
+    f0 = _place(phi, tx, ty, bx, by)
+    c, s = math.cos(phi), math.sin(phi)
     n = len(stated)
     jac = np.zeros((n, 2, N_NUISANCE + N_CAL))
     jac[:, 0, 1] = 1.0
     jac[:, 1, 2] = 1.0
-    for k in (0, 3, *range(N_NUISANCE, N_NUISANCE + N_CAL)):
-        h = 1e-4 if k < N_NUISANCE + TAU_U else 1e-3
-        if k >= N_NUISANCE + TAU_U and not np.any(timed == (k == N_NUISANCE + TAU_K)):
+    jac[:, 0, 0] = -s * bx - c * by  # d R(phi) b / d phi = R(phi + pi/2) b
+    jac[:, 1, 0] = c * bx - s * by
+    path_u, dts = path.us, path.dts
+    travel = path.step_dist  # the raw odometry's metres per step: the drift turns each step by psi kx travel
+    rvx, rvy = path_u[:, 0] * dts, path_u[:, 1] * dts  # the raw odometry's displacement per step, body frame
+    cm, sm = integrated.c, integrated.s
+    columns = (
+        (3, integrated.derivative(when, travel * float(cal[KX]))),
+        (N_NUISANCE + KX, integrated.derivative(when, travel * psi, (rvx * cm, rvx * sm))),
+        (N_NUISANCE + KY, integrated.derivative(when, 0.0, (-rvy * sm, rvy * cm))),
+        (N_NUISANCE + KW, integrated.derivative(when, path_u[:, 2] * dts)),
+    )
+    for k, (gx, gy) in columns:
+        jac[:, 0, k] = c * gx - s * gy
+        jac[:, 1, k] = s * gx + c * gy
+    for kind, k in ((False, N_NUISANCE + TAU_U), (True, N_NUISANCE + TAU_K)):
+        if not np.any(timed == kind):
             continue  # no fix of that kind in the window: its delay is not in the data
-        up, down = params.copy(), params.copy()
-        up[k] += h
-        down[k] -= h
-        jac[:, :, k] = (_model(path, up, stated, timed) - _model(path, down, stated, timed)) / (2.0 * h)
+        h = 1e-3
+        shift = np.where(timed == kind, h, 0.0)
+        ux, uy = integrated.beacon(when - shift)  # tau + h: measured earlier
+        dx, dy = integrated.beacon(when + shift)
+        jac[:, :, k] = (_place(phi, tx, ty, ux, uy) - _place(phi, tx, ty, dx, dy)) / (2.0 * h)
     return zs - f0, jac
 
 

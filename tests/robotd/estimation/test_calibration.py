@@ -11,6 +11,7 @@ from fix_errors import ar1_errors
 from sim_logs import sim_config, simulated
 
 from robotd.config.model import RobotdConfig
+from robotd.estimation import calibration
 from robotd.estimation.calibration import Calibration, CalibrationLimits, Calibrator
 from robotd.logs.sensorlog import IpsFix, SensorLog, Truth
 from robotd.offline.metrics import Trajectory, score
@@ -153,3 +154,31 @@ def test_a_heading_fit_judges_the_fixes_before_the_first_window_and_the_window_r
     assert after.judged  # a saved calibration has judged its installation's fixes
     assert not after.judge_fixes(100, 0.03**2, 0.0)  # the windows' judgement stands
     assert after.current.fix_correlation == judged.fix_correlation
+
+
+def test_the_fits_jacobian_is_the_path_models_derivative() -> None:
+    # a turning, strafing path with a lever arm: every parameter moves the predicted fixes
+    dts = np.full(200, 0.05)
+    ends = np.cumsum(dts)
+    us = np.column_stack([0.3 + 0.1 * np.sin(ends), 0.2 * np.cos(0.7 * ends), 0.5 * np.sin(0.3 * ends)])
+    path = calibration._Path(0.0, ends, dts, us, (0.05, -0.03))
+    rng = np.random.default_rng(3)
+    stated = np.sort(rng.uniform(0.5, 9.5, 80))
+    timed = rng.random(80) < 0.5
+    params = np.array([0.3, 1.0, -2.0, 0.02, 1.05, 0.95, 1.1, 0.08, 0.01])  # phi, T, psi, scales, delays
+    zs = rng.normal(size=(80, 2))
+    residual, jac = calibration._residuals_and_jacobian(path, params, stated, timed, zs)
+
+    def predicted(p: np.ndarray) -> np.ndarray:
+        cal = p[4:]
+        when = stated - np.where(timed, cal[4], cal[3])
+        bx, by = path.beacon(cal, float(p[3]), when)
+        c, s = np.cos(p[0]), np.sin(p[0])
+        return np.stack([p[1] + c * bx - s * by, p[2] + s * bx + c * by], axis=1)
+
+    np.testing.assert_allclose(residual, zs - predicted(params), atol=1e-12)
+    for k in range(7):  # the placement, the drift and the three scales (the delays: differences in time)
+        h = np.zeros(9)
+        h[k] = 1e-6
+        numeric = (predicted(params + h) - predicted(params - h)) / 2e-6
+        np.testing.assert_allclose(jac[:, :, k], numeric, atol=1e-7, err_msg=f"parameter {k}")
