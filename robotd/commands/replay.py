@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 from robotd.config.model import RobotdConfig, load, parse
+from robotd.daemon import calibration_store
 from robotd.logs import logcheck
 from robotd.offline import librsf
 from robotd.offline.replay import format_table, replay, robot_from_log, write_outputs
@@ -32,6 +33,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     rep.add_argument("log", help="sensor log (JSON Lines, or an MCAP file: .mcap)")
     rep.add_argument("--out", required=True, help="directory for estimates.jsonl and metrics.json")
     rep.add_argument("--config", help="YAML configuration (default: built-in defaults); meta.robot overrides geometry")
+    rep.add_argument(
+        "--calibration",
+        metavar="FILE",
+        help="start robotd's filter from this calibration file (the daemon's ekf.calibration_file, or a replay's"
+        " calibration.json), as the daemon starts after a restart",
+    )
     rep.add_argument("--mcap", metavar="FILE.mcap", help="also write the log and every method's poses as MCAP")
     rep.add_argument(
         "--view",
@@ -62,6 +69,16 @@ def run_replay(args: argparse.Namespace) -> int:
         why = "a file is in the way" if isinstance(error, FileExistsError) else error.strerror or str(error)
         print(f"robotd replay: --out {out}: cannot make it a directory: {why}", file=sys.stderr)
         return EX_CANTCREAT
+    start = None
+    if args.calibration:
+        try:
+            start = calibration_store.read(args.calibration)
+        except OSError as error:
+            print(f"robotd replay: --calibration {args.calibration}: {error.strerror or error}", file=sys.stderr)
+            return EX_NOINPUT
+        except ValueError as error:
+            print(f"robotd replay: --calibration {args.calibration}: {error}", file=sys.stderr)
+            return EX_DATAERR
     try:
         log = read_any_log(args.log)
     except OSError as error:
@@ -75,7 +92,7 @@ def run_replay(args: argparse.Namespace) -> int:
         print(f"robotd replay: {args.log}: {refusal}; nothing replayed", file=sys.stderr)
         return EX_DATAERR
     _report(args.log, [*read_problems, *checked_problems])
-    result = replay(log, config)
+    result = replay(log, config, start)
     for problem in result.problems[len(log.problems) :]:
         print(f"robotd replay: {problem}", file=sys.stderr)
     try:

@@ -36,13 +36,12 @@ class Saved(NamedTuple):
     noise: LearntNoise | None  # None in files written before robotd kept the noise
 
 
-def load(path: str) -> Saved | None:
-    """The saved calibration and noise, or None (no path, no file, or a damaged file: said once at WARNING)."""
-    if not path:
-        return None
+def read(path: str | Path) -> Saved:
+    """The saved calibration and noise of a calibration file; OSError when it cannot be read, ValueError (saying
+    which value) when it is not a calibration file robotd can use."""
     try:
         data = json.loads(Path(path).read_text(encoding="utf-8"))
-        if data.get("format") != FORMAT:
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise ValueError(f"not a {FORMAT} file")
         values = [float(data[key]) for key in ("kx", "ky", "kw", "latency_s", "time_error_s")]
         sigmas = [float(value) for value in data["sigmas"]]
@@ -57,16 +56,13 @@ def load(path: str) -> Saved | None:
             if not (math.isfinite(ips_sigma) and ips_sigma > 0.0 and math.isfinite(scale) and scale > 0.0):
                 raise ValueError("ips_sigma_m and process_noise_scale must be positive numbers")
             noise = LearntNoise(ips_sigma**2, scale)
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:
-        log.warning("calibration file %s unusable (%s): starting from the configuration", path, error)
-        return None
+        windows = int(data.get("windows", 0))
+    except (KeyError, TypeError, AttributeError) as error:
+        raise ValueError(f"not a usable {FORMAT} file ({type(error).__name__}: {error})") from error
     floors = (MIN_SCALE_SIGMA, MIN_SCALE_SIGMA, MIN_SCALE_SIGMA, MIN_LATENCY_SIGMA_S, MIN_LATENCY_SIGMA_S)
     widened = tuple(max(s, f) for s, f in zip(sigmas, floors, strict=True))
     kx, ky, kw, latency, time_error = values
     sigmas_out = (widened[0], widened[1], widened[2], widened[3], widened[4])
-    windows = int(data.get("windows", 0))
     fix_var, correlation, correlated_var = judgement
     calibration = Calibration(
         kx, ky, kw, latency, time_error, sigmas_out, windows, correlated_var, correlation, fix_var
@@ -74,7 +70,20 @@ def load(path: str) -> Saved | None:
     return Saved(calibration, noise)
 
 
-def save(path: str, calibration: Calibration, noise: LearntNoise | None = None) -> None:
+def load(path: str) -> Saved | None:
+    """The saved calibration and noise, or None (no path, no file, or a damaged file: said once at WARNING)."""
+    if not path:
+        return None
+    try:
+        return read(path)
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as error:
+        log.warning("calibration file %s unusable (%s): starting from the configuration", path, error)
+        return None
+
+
+def save(path: str | Path, calibration: Calibration, noise: LearntNoise | None = None) -> None:
     """Write the calibration (and the noise, when given) atomically (OSError: the caller says so and runs on)."""
     c = calibration
     data: dict[str, object] = {

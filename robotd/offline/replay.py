@@ -7,6 +7,8 @@ given the true initial pose (its heading fitted to the first metre of truth when
 start, so that it is a fair baseline. The filters start from the configuration. The gated EKF (`gated_preset`) is the
 textbook filter a practitioner would write: the paper's, with a chi-square gate and fixes fused at their measurement
 time. The baselines exist only to be scored: a log without truth runs robotd's filter alone (their tracks stay empty).
+robotd's filter may instead start from what a run before learnt (the daemon's calibration file), as the daemon does
+after a restart; what it learnt by the end is written beside the estimates in that file's format.
 """
 
 from __future__ import annotations
@@ -21,10 +23,11 @@ import numpy as np
 
 from robotd import kinematics
 from robotd.config.model import RobotdConfig, gated_preset, paper_preset
+from robotd.daemon import calibration_store
 from robotd.estimation import ekf
 from robotd.estimation.calibration import Calibration
 from robotd.estimation.ekf import Cov, wrap_angle
-from robotd.estimation.estimator import Diagnostics, Estimator
+from robotd.estimation.estimator import Diagnostics, Estimator, LearntNoise
 from robotd.estimation.heading import fit_rotation
 from robotd.logs.sensorlog import IpsFix, IpsLost, SensorLog, Truth, TwistSample, Wheels
 from robotd.offline.consistency import Consistency, consistency
@@ -78,6 +81,7 @@ class ReplayResult:
     consistency: dict[str, Consistency]  # robotd's filter always (NIS); the paper's too with truth
     calibration: Calibration  # robotd's filter's at the end of the log
     process_noise_scale: float  # robotd's filter's learnt factor on the configured odometry noise, at the end
+    noise: LearntNoise  # robotd's filter's learnt noise at the end (the IPS noise in use, the process noise scale)
     counters: dict[str, int]
     diagnostics: list[Diagnostics]
     problems: list[str]
@@ -125,9 +129,9 @@ def robot_from_log(
     return geometry, offset, cpr, problems
 
 
-def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
+def replay(log: SensorLog, config: RobotdConfig, start: calibration_store.Saved | None = None) -> ReplayResult:
     """Run the four methods over a parsed log, event by event through the daemon's Estimator, and score them when
-    the log holds truth (robotd's filter alone without).
+    the log holds truth (robotd's filter alone without); robotd's filter starts from `start` when given.
 
     Odometry alone is an Estimator that is never given a fix, started at the origin and placed on the true start.
     """
@@ -136,7 +140,15 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
     truth_samples = [(e.t, e.x, e.y, e.theta) for e in events if isinstance(e, Truth)]
     truth = Trajectory.from_samples(truth_samples) if truth_samples else None
     scored = truth is not None  # the baselines exist only to be scored
-    robotd = Estimator(config.ekf, geometry, offset, cpr, default_latency_s=config.marvelmind.default_latency_s)
+    robotd = Estimator(
+        config.ekf,
+        geometry,
+        offset,
+        cpr,
+        default_latency_s=config.marvelmind.default_latency_s,
+        calibration=None if start is None else start.calibration,
+        noise=None if start is None else start.noise,
+    )
     paper = gated = odometry = None
     if scored:
         paper = Estimator(paper_preset(config.ekf), geometry, offset, cpr)
@@ -208,6 +220,7 @@ def replay(log: SensorLog, config: RobotdConfig) -> ReplayResult:
         consistency=honesty,
         calibration=robotd.calibration,
         process_noise_scale=robotd.process_noise_scale,
+        noise=robotd.learnt_noise,
         counters=dict(robotd.counters),
         diagnostics=diagnostics,
         problems=list(log.problems) + problems,
@@ -240,7 +253,8 @@ def _place_odometry(odometry: _Estimates, truth: Trajectory | None) -> None:
 
 
 def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
-    """Write estimates.jsonl (robotd's filter) and, with truth, metrics.json; returns the paths written."""
+    """Write estimates.jsonl (robotd's filter), calibration.json (what it learnt, in the daemon's calibration file
+    format) and, with truth, metrics.json; returns the paths written."""
     out_dir.mkdir(parents=True, exist_ok=True)
     written = [out_dir / "estimates.jsonl"]
     e = result.ekf
@@ -248,6 +262,8 @@ def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
         write_estimates(
             stream, zip(e.t.tolist(), e.x.tolist(), e.y.tolist(), e.theta.tolist(), result.ekf_cov, strict=True)
         )
+    written.append(out_dir / "calibration.json")
+    calibration_store.save(written[-1], result.calibration, result.noise)
     if result.metrics is not None:
         metrics: dict[str, dict[str, float | int | None] | None] = {
             name: (dict(stats.as_dict()) if stats is not None else None) for name, stats in result.metrics.items()

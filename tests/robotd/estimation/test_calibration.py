@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import msgspec
 import numpy as np
@@ -11,11 +12,12 @@ from fix_errors import ar1_errors
 from sim_logs import sim_config, simulated
 
 from robotd.config.model import RobotdConfig
+from robotd.daemon import calibration_store
 from robotd.estimation import calibration
 from robotd.estimation.calibration import Calibration, CalibrationLimits, Calibrator
 from robotd.logs.sensorlog import IpsFix, SensorLog, Truth
 from robotd.offline.metrics import Trajectory, score
-from robotd.offline.replay import ReplayResult, replay
+from robotd.offline.replay import ReplayResult, replay, write_outputs
 
 
 def _with_meta_robot(log: SensorLog, **robot: float) -> SensorLog:
@@ -182,3 +184,36 @@ def test_the_fits_jacobian_is_the_path_models_derivative() -> None:
         h[k] = 1e-6
         numeric = (predicted(params + h) - predicted(params - h)) / 2e-6
         np.testing.assert_allclose(jac[:, :, k], numeric, atol=1e-7, err_msg=f"parameter {k}")
+
+
+def _rmse_before(result: ReplayResult, log: SensorLog, before_s: float) -> float:
+    truth = Trajectory.from_samples([(e.t, e.x, e.y, e.theta) for e in log.events if type(e) is Truth])
+    e = result.ekf
+    keep = e.t < e.t[0] + before_s
+    stats = score(truth, Trajectory(e.t[keep], e.x[keep], e.y[keep], e.theta[keep]))
+    assert stats is not None
+    return stats.rmse_m
+
+
+@pytest.mark.parametrize(("taught_by", "seed"), [(1, 2), (2, 3), (3, 1)])
+def test_a_replay_started_from_what_another_log_taught_is_calibrated_from_its_start(
+    tmp_path: Path, taught_by: int, seed: int
+) -> None:
+    config = sim_config()
+    radius = config.robot.wheel_radius_m
+    world = dataclasses.replace(config, robot=dataclasses.replace(config.robot, wheel_radius_m=1.1 * radius))
+    teacher = _with_meta_robot(_random_drive(taught_by, world), wheel_radius=radius)  # configured 10 % off
+    learner = _with_meta_robot(_random_drive(seed, world), wheel_radius=radius)
+    taught = replay(teacher, config)
+    write_outputs(taught, tmp_path)
+    saved = calibration_store.read(tmp_path / "calibration.json")  # the daemon's calibration file format
+    assert saved.calibration.kx == pytest.approx(taught.calibration.kx)
+    assert saved.noise is not None
+    assert saved.noise.process_noise_scale == pytest.approx(taught.process_noise_scale)
+    started = replay(learner, config, saved)
+    fresh = replay(learner, config)
+    assert started.calibration.windows > saved.calibration.windows  # it went on learning
+    # the fresh filter spends its first windows learning the scale the other log taught
+    assert _rmse_before(started, learner, 15.0) < 0.9 * _rmse_before(fresh, learner, 15.0)
+    assert started.consistency["ekf"].inside_95 is not None
+    assert started.consistency["ekf"].inside_95 >= 0.85

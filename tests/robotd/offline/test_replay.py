@@ -218,3 +218,23 @@ def test_a_flat_floor_earns_a_smaller_process_noise_than_a_rough_one_and_a_small
     assert learnt.consistency["ekf"].inside_95 >= 0.85  # smaller, and still honest
     rough = sim_config(ips_noise_m=0.02)
     assert replay(simulated(rough, 2, loops=2), rough).process_noise_scale > learnt.process_noise_scale
+
+
+def test_replay_starts_from_a_calibration_file_and_refuses_a_damaged_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = tmp_path / "drive.jsonl"
+    log.write_text(simulated_text(sim_config(), 3), encoding="utf-8")
+    assert cli.main(["replay", str(log), "--out", str(tmp_path / "first")]) == 0
+    kept = tmp_path / "first" / "calibration.json"
+    first = json.loads(kept.read_text())
+    assert first["format"] == "robotd-calibration"
+    assert first["windows"] > 0
+    assert cli.main(["replay", str(log), "--out", str(tmp_path / "again"), "--calibration", str(kept)]) == 0
+    again = json.loads((tmp_path / "again" / "calibration.json").read_text())
+    assert again["windows"] > first["windows"]  # it started where the first replay ended, and went on
+    capsys.readouterr()
+    kept.write_text(json.dumps(first | {"fix_correlation": 2.0}), encoding="utf-8")
+    assert cli.main(["replay", str(log), "--out", str(tmp_path / "bad"), "--calibration", str(kept)]) == 65
+    assert "correlation below 1" in capsys.readouterr().err
+    assert cli.main(["replay", str(log), "--out", str(tmp_path / "bad"), "--calibration", str(tmp_path / "no")]) == 66
