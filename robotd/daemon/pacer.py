@@ -11,7 +11,6 @@ times per deadman timeout, so a late wake-up cannot trip the deadman of a robot 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 
 from drivers.pacing import next_tick, sleep_until
 
@@ -24,24 +23,28 @@ class ControlPacer:
     def __init__(self, period_s: float, deadman_timeout_s: float) -> None:
         self.period_s = period_s
         self.rest_period_s = max(period_s, deadman_timeout_s / REST_BUMPS_PER_TIMEOUT)
-        self._command = asyncio.Event()
+        self._resting: asyncio.Future[None] | None = None  # what a loop at rest waits for: a command or the heartbeat
         self._deadline: float | None = None
         self.rest_wakeups = 0  # wake-ups at rest (heartbeats and commands), for the status and the tests
 
     def command_arrived(self) -> None:
         """A valid command arrived: a loop at rest steps at once and resumes its period."""
-        self._command.set()
+        _wake(self._resting)
 
     async def next_step(self, *, at_rest: bool) -> None:
         """Wait for the next step (call it right after a step, with no await between, so no command slips by)."""
         loop = asyncio.get_running_loop()
         if at_rest:
-            self._command.clear()
-            # asyncio.timeout, not wait_for: Python 3.11's wait_for drops a cancellation that arrives as the event is
-            # set (a command at shutdown), and the daemon's TaskGroup would then wait for this loop forever
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(self.rest_period_s):
-                    await self._command.wait()
+            # one future that the heartbeat's timer or a command completes: no timeout that cancels the task at
+            # every heartbeat (a parked robot's main cost is its wake-ups), and a cancellation (the shutdown) reaches
+            # this await like any other, even as a command arrives
+            self._resting = resting = loop.create_future()
+            heartbeat = loop.call_later(self.rest_period_s, _wake, resting)
+            try:
+                await resting
+            finally:
+                heartbeat.cancel()
+                self._resting = None
             self.rest_wakeups += 1
             self._deadline = None  # back on the grid from the next period
             return
@@ -49,3 +52,8 @@ class ControlPacer:
             self._deadline = next_tick(loop.time(), self.period_s)
         await sleep_until(self._deadline)
         self._deadline += self.period_s
+
+
+def _wake(resting: asyncio.Future[None] | None) -> None:
+    if resting is not None and not resting.done():
+        resting.set_result(None)
