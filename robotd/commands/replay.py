@@ -31,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="replay a sensor log through odometry, the paper's EKF, a gated EKF and robotd's EKF; score against truth",
     )
     rep.add_argument("log", help="sensor log (JSON Lines, or an MCAP file: .mcap)")
-    rep.add_argument("--out", required=True, help="directory for estimates.jsonl and metrics.json")
+    rep.add_argument("--out", required=True, help="directory for estimates.jsonl, calibration.json and metrics.json")
     rep.add_argument("--config", help="YAML configuration (default: built-in defaults); meta.robot overrides geometry")
     rep.add_argument(
         "--calibration",

@@ -80,7 +80,6 @@ class ReplayResult:
     metrics: dict[str, ErrorStats | None] | None
     consistency: dict[str, Consistency]  # robotd's filter always (NIS); the paper's too with truth
     calibration: Calibration  # robotd's filter's at the end of the log
-    process_noise_scale: float  # robotd's filter's learnt factor on the configured odometry noise, at the end
     noise: LearntNoise  # robotd's filter's learnt noise at the end (the IPS noise in use, the process noise scale)
     counters: dict[str, int]
     diagnostics: list[Diagnostics]
@@ -89,6 +88,11 @@ class ReplayResult:
     geometry: kinematics.Geometry
     ips_offset: tuple[float, float]
     counts_per_rev: int
+
+    @property
+    def process_noise_scale(self) -> float:
+        """robotd's filter's learnt factor on the configured odometry noise variances, at the end of the log."""
+        return self.noise.process_noise_scale
 
 
 def robot_from_log(
@@ -219,7 +223,6 @@ def replay(log: SensorLog, config: RobotdConfig, start: calibration_store.Saved 
         metrics=metrics,
         consistency=honesty,
         calibration=robotd.calibration,
-        process_noise_scale=robotd.process_noise_scale,
         noise=robotd.learnt_noise,
         counters=dict(robotd.counters),
         diagnostics=diagnostics,
