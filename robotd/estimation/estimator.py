@@ -36,8 +36,8 @@ from robotd.config.model import EkfConfig
 from robotd.estimation import ekf
 from robotd.estimation.calibration import Calibration, CalibrationLimits, Calibrator
 from robotd.estimation.fixgate import Diagnostics, FixGate
-from robotd.estimation.heading import HeadingAligner, HeadingCheck, RotationFit
-from robotd.estimation.history import Anchor, FixRecord, History, Predictor, State
+from robotd.estimation.heading import HeadingAligner, HeadingCheck, RotationFit, trimmed_rotation_fit
+from robotd.estimation.history import NO_PROVISIONAL_HEADING, Anchor, FixRecord, History, Predictor, State
 from robotd.estimation.modes import Modes, PositionMode, Verdict
 from robotd.estimation.process_noise import ProcessNoiseScale
 from robotd.estimation.track import OdometryTrack, Twist3
@@ -45,6 +45,7 @@ from robotd.estimation.wheelsteps import TickKinematics, WheelFeed
 
 LATENCY_PRIOR_SIGMA_S = 0.1  # how far the delay of fixes without a measurement time may be from the assumed one
 TIME_CHECK_SIGMA_S = 0.03  # how far a fix's stated measurement time may be off
+PROVISIONAL_MAX_SIGMA_RAD = 0.3  # a short track's first-order sigma beyond this is no guide (one was 5 sigma off)
 TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
 
 
@@ -302,6 +303,8 @@ class Estimator:
             self._calibrate(stated, x, y, timed=timed)
         if aligner.enabled and track.t and track.dist[-1] >= aligner.next_fit:
             self._maybe_realign()
+        if not self.modes.heading_known and self.modes.placed:
+            self._provisional_heading()
         return Diagnostics(
             t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)
         )
@@ -418,6 +421,27 @@ class Estimator:
         evidence = self._heading_check.evidence(fit, theta, p[5], self.modes.heading)
         if evidence is not None and self.modes.on_evidence(evidence):
             self._realign(fit)
+
+    def _provisional_heading(self) -> None:
+        """With the heading unknown: move the position along the heading the window's fixes so far give (its rotation
+        fit), by the share of the motion that its sigma expects (robotd.estimation.history.Predictor)."""
+        aligner = self._aligner
+        provisional = NO_PROVISIONAL_HEADING
+        tolerance = 4.0 * math.sqrt(self._fix_gate.r)
+        fit = trimmed_rotation_fit(aligner.oxs, aligner.oys, aligner.zxs, aligner.zys, tolerance)
+        if fit is not None:
+            rotation, sigma, _, _, spread = fit
+            # a short track's few residuals understate the noise (the fit absorbs it): not below the IPS noise in use
+            sigma *= math.sqrt(max(1.0, self._fix_gate.r / max(spread.variance, 1e-12)))
+        if fit is not None and sigma <= PROVISIONAL_MAX_SIGMA_RAD:
+            _, now_pose, _ = self._track.newest(self._history.start)
+            turned = aligner.in_window(now_pose)[2]  # the odometry's turn since the window began
+            theta = self._state_at_newest_step()[2]
+            # the filter moves along its guess; the fit says the window began facing `rotation`
+            provisional = (math.exp(-0.5 * sigma * sigma), ekf.wrap_angle(rotation - (theta - turned)))
+        if provisional != self._predictor.provisional:
+            self._predictor.provisional = provisional
+            self._newest = None  # states carried with the old provisional heading
 
     def _realign(self, fit: RotationFit) -> None:
         """Restart the state from the window's fit: its heading, and the position its translation puts it at."""

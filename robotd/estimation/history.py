@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
+import math
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -24,6 +25,7 @@ from robotd.estimation.track import OdometryTrack, Twist3
 State = tuple[float, float, float, ekf.Cov, ekf.Sens]
 """x, y, theta, P (upper triangle) and the pose's sensitivity to the odometry scales (ekf.Sens)."""
 UNKNOWN_HEADING_CORRELATION_S = 0.1  # how long a velocity error from an unknown heading persists: a fix interval
+NO_PROVISIONAL_HEADING = (0.0, 0.0)  # (shrink, turn): no motion is expected in any direction
 
 
 class FixRecord(NamedTuple):
@@ -65,10 +67,15 @@ class Predictor:
     robotd.estimation.modes.
 
     With the heading unknown (power-on anywhere, a robot carried off), odometry says how far the robot went but not in
-    which direction: the state still moves along the guessed heading (right more often than not: robots tend to start
-    facing the map's x axis), but the position's variance grows by the distance squared in every direction and keeps
-    no correlation with the heading, so fixes steer the position freely and the gate does not defend a guess; the
-    heading itself comes from the first whole alignment window.
+    which direction. Until fixes place the position, the pose is dead reckoning in the start's frame (initial_pose,
+    its heading the guess): what a robot without a beacon shows. Once fixes have placed it on the map, the guess is
+    worth nothing (a recorded robot rarely starts facing the map's x axis, and moving along a wrong guess is off by up
+    to twice the distance): the motion takes the `provisional` heading that the fixes so far give, and its expected
+    value for a heading known to within sigma, exp(-sigma^2 / 2) of the displacement; with no such heading yet
+    (sigma infinite), the position stays where the fixes put it. Either way its variance grows as for a heading not
+    known, in every direction and with no correlation with the heading, so fixes steer the position freely and the
+    gate does not defend a guess. The heading itself is taken from the first whole alignment window
+    (robotd.estimation.heading).
     """
 
     def __init__(self, noise: ekf.ControlNoise, modes: Modes, *, midpoint: bool) -> None:
@@ -78,6 +85,8 @@ class Predictor:
         self.midpoint = midpoint
         self.scale: Twist3 = (1.0, 1.0, 1.0)  # the odometry calibration's multipliers of vx, vy, wz
         self.scale_var: Twist3 = ekf.NO_SCALE_VAR  # their relative variances (see ekf.predict_considering)
+        # heading unknown, position placed: (shrink, turn) of the guessed motion, from the fixes so far (see above)
+        self.provisional = NO_PROVISIONAL_HEADING
 
     def scale_noise(self, factor: float) -> None:
         """Use the configured odometry noise variances times factor (the paper's per-step terms unchanged)."""
@@ -107,10 +116,21 @@ class Predictor:
         )
         if self.modes.heading_known:
             return x, y, theta, p, sens
-        # a velocity error of up to twice the speed, correlated over about one fix interval (each fix re-anchors the
-        # position, so only the motion since the last one is in doubt), as white noise of that density
-        q = 4.0 * (vx * vx + vy * vy) * dt * UNKNOWN_HEADING_CORRELATION_S
+        # the velocity error, correlated over about one fix interval (each fix re-anchors the position, so only the
+        # motion since the last one is in doubt), as white noise of that density: along a guess, up to twice the
+        # speed; placed, the speed in a direction not known (half its square per axis), also along a provisional
+        # heading: a short track's fit improves the estimate but is no proof (its residuals are few, its errors may
+        # persist), so it does not make the position more certain
+        speed2 = vx * vx + vy * vy
         xx, xy, _, yy, _, tt = p
+        if self.modes.placed:
+            shrink, turn = self.provisional
+            q = speed2 * dt * UNKNOWN_HEADING_CORRELATION_S
+            dx, dy = x - state[0], y - state[1]
+            c, s = shrink * math.cos(turn), shrink * math.sin(turn)
+            x, y = state[0] + c * dx - s * dy, state[1] + s * dx + c * dy
+        else:
+            q = 4.0 * speed2 * dt * UNKNOWN_HEADING_CORRELATION_S
         return x, y, theta, (xx + q, xy, 0.0, yy + q, 0.0, tt), ekf.heading_sensitivity(sens)
 
 

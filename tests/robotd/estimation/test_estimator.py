@@ -6,6 +6,8 @@ import dataclasses
 import math
 import random
 
+import pytest
+
 from robotd import kinematics
 from robotd.config.model import EkfConfig, paper_preset
 from robotd.estimation.estimator import Estimator, PositionMode, Verdict
@@ -255,13 +257,40 @@ def test_non_finite_and_out_of_order_inputs_are_dropped_and_counted() -> None:
 
 
 def test_wheel_ticks_become_motion_with_the_configured_counts_per_turn() -> None:
-    est = Estimator(_config(predict_period_s=0.0), GEOMETRY, (0.0, 0.0), CPR)
+    est = Estimator(_config(predict_period_s=0.0, initial_sigma=(1.0, 1.0, 0.1)), GEOMETRY, (0.0, 0.0), CPR)
     est.on_wheels(0.0, (0, 0, 0, 0))
     # one full turn of every wheel forward: 2 pi r straight ahead
     est.on_wheels(1.0, (CPR, CPR, CPR, CPR))
     pose = est.pose()
     assert math.isclose(pose.x, 2 * math.pi * GEOMETRY.wheel_radius_m, rel_tol=1e-12)
     assert math.isclose(pose.vx, 2 * math.pi * GEOMETRY.wheel_radius_m, rel_tol=1e-12)
+
+
+def test_with_the_heading_unknown_odometry_moves_a_placed_position_along_no_guess_but_widens_it() -> None:
+    def estimator(theta_sigma: float) -> Estimator:
+        return Estimator(_config(predict_period_s=0.0, initial_sigma=(1.0, 1.0, theta_sigma)), GEOMETRY, (0, 0), CPR)
+
+    known, unknown, unplaced = estimator(0.1), estimator(3.14), estimator(3.14)
+    for est in (known, unknown, unplaced):
+        est.on_wheels(0.0, (0, 0, 0, 0))
+        if est is not unplaced:
+            for t in (0.1, 0.2, 0.3):  # three agreeing fixes at rest place the position on the map
+                est.on_fix(t, 0.0, 0.0, t)
+        for k in range(1, 11):  # 0.29 m in 1 s, then a quarter turn on the spot
+            est.on_wheels(0.3 + 0.1 * k, (k * CPR // 10,) * 4)
+        est.on_twist(1.3, 0.0, 0.0, 0.5)
+        est.on_twist(2.3, 0.0, 0.0, 0.5)
+    a, b, c = known.pose(), unknown.pose(), unplaced.pose()
+    assert a.x > 0.25  # a known heading: dead reckoning along it
+    assert c.x > 0.25  # no fix yet: dead reckoning in the start's frame, as a robot without a beacon shows
+    # placed, heading unknown: for a heading equally likely in every direction the expected displacement is zero; the
+    # variance grows in every direction and the turn is still integrated (the heading changes by what the wheels say)
+    assert math.hypot(b.x, b.y) < 0.01
+    assert b.cov[0] > 0.05**2  # the speed, in a direction not known, over about a fix interval
+    assert b.cov[4] > 0.05**2
+    assert b.cov[1] == 0.0
+    assert b.cov[2] == 0.0
+    assert b.theta == pytest.approx(a.theta)
 
 
 def test_a_robot_at_rest_does_not_grow_uncertain() -> None:
@@ -346,3 +375,14 @@ def test_a_pose_extrapolated_beyond_the_newest_input_grows_uncertain_as_the_proc
     _drive(at_rest, 5.0, (0.0, 0.0, 0.0), noise=0.02)
     still = at_rest.pose()
     assert at_rest.pose(still.t + 0.5).cov == still.cov  # a robot at rest does not grow uncertain by waiting
+
+
+def test_a_robot_driving_off_facing_away_from_the_guess_is_followed_before_its_heading_is_aligned() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)  # the defaults: the heading unknown, guessed 0
+    true = _drive(est, 1.6, (0.3, 0.0, 0.0), true_start=(0.0, 0.0, math.pi), fix_hz=10.0, noise=0.02)
+    x, y, _ = _drive(est, 1.69, (0.3, 0.0, 0.0), start=1.6, true_start=true, fix_hz=0.1)  # 27 mm since the last fix
+    assert not est.modes.heading_known  # 0.5 m driven: the alignment window (0.6 m) is not complete
+    pose = est.pose()
+    # the fixes so far give a provisional heading: the position moves with the robot, not against it along the guess
+    # (off by twice the distance since the last fix) nor held where the last fix put it (off by that distance)
+    assert math.hypot(pose.x - x, pose.y - y) < 0.02
