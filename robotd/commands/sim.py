@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from robotd.config.model import WHEELS, load
+from robotd.sim.refix import KINDS
 from robotd.sim.scenarios import SCENARIOS
 from robotd.sim.variants import VARIANTS
 
@@ -25,6 +26,26 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     simulate.add_argument("--loops", type=int, default=3, help="repetitions of the scenario (default 3)")
     simulate.add_argument("--config", default=DEFAULT_SIM_CONFIG, help=f"configuration (default {DEFAULT_SIM_CONFIG})")
     simulate.set_defaults(handler=run_simulate)
+    refix = subparsers.add_parser(
+        "simulate-fixes",
+        help="replace a recorded log's IPS fixes by the virtual hedgehog's, measured on its truth (real odometry, "
+        "simulated fixes: how the logs robotd is judged on are made)",
+    )
+    refix.add_argument("log", help="sensor log with truth (JSON Lines), e.g. a real robot's with motion capture")
+    refix.add_argument("--out", required=True, metavar="LOG.jsonl", help="sensor log to write")
+    refix.add_argument(
+        "--kind",
+        choices=KINDS,
+        default="clean",
+        help="clean (default); untimed: no measurement times; harsh: outlier bursts, an 8 s outage, untimed",
+    )
+    refix.add_argument("--seed", type=int, default=None, help="seed (default: the configuration's sim.seed)")
+    refix.add_argument(
+        "--config",
+        default=DEFAULT_SIM_CONFIG,
+        help=f"the hedgehog's rate, latency and noise: sim.ips_* (default {DEFAULT_SIM_CONFIG})",
+    )
+    refix.set_defaults(handler=run_simulate_fixes)
     vhw = subparsers.add_parser(
         "vhw", help="run the virtual robot in real time: a virtual pigpiod, a Marvelmind pseudo-terminal, physics"
     )
@@ -74,6 +95,43 @@ def run_simulate(args: argparse.Namespace) -> int:
     counts = ", ".join(f"{n} {kind}" for kind, n in sorted(summary.events.items()))
     print(f"{out}: {args.scenario}, seed {seed}, {args.loops} loops, {summary.simulated_s:.1f} s simulated ({counts})")
     print(f"ran in {elapsed:.2f} s: {summary.simulated_s / max(elapsed, 1e-9):.0f}x real time")
+    return 0
+
+
+def run_simulate_fixes(args: argparse.Namespace) -> int:
+    """Write the log with simulated fixes; a log that cannot be read or has no usable truth gives one line and a
+    sysexits status (66, 65), an output that cannot be written 73."""
+    from robotd.logs.sensorlog import IpsFix, LogWriter, Meta, read_log  # noqa: PLC0415 - only this one writes logs
+    from robotd.sim.refix import TruthError, refixed  # noqa: PLC0415 - nor simulates fixes
+    from robotd.sim.world import ips_params  # noqa: PLC0415
+
+    config = load(args.config)
+    seed = config.sim.seed if args.seed is None else args.seed
+    try:
+        log = read_log(args.log)
+    except OSError as error:
+        print(f"robotd simulate-fixes: {args.log}: {error.strerror or error}", file=sys.stderr)
+        return 66
+    offset = log.meta.robot.get("ips_offset", config.robot.ips_offset_m)
+    try:
+        ox, oy = (float(v) for v in offset)
+        events = refixed(log.events, ips_params(config.sim), args.kind, seed, (ox, oy))
+    except (TruthError, TypeError, ValueError) as error:
+        print(f"robotd simulate-fixes: {args.log}: {error}", file=sys.stderr)
+        return 65
+    source = f"{log.meta.source}; fixes: robotd simulate-fixes --kind {args.kind} --seed {seed}".lstrip("; ")
+    out = Path(args.out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with out.open("w", encoding="utf-8") as stream:
+            writer = LogWriter(stream, Meta(robot=log.meta.robot, source=source))
+            for event in events:
+                writer.write(event)
+    except OSError as error:
+        print(f"robotd simulate-fixes: --out {out}: {error.strerror or error}", file=sys.stderr)
+        return 73
+    fixes = sum(1 for event in events if isinstance(event, IpsFix))
+    print(f"{out}: {args.log}'s odometry and truth, {fixes} {args.kind} fixes (seed {seed}) from the virtual hedgehog")
     return 0
 
 

@@ -3,41 +3,27 @@ logs robotd is judged on are made: the robot starts facing a direction the filte
 
 from __future__ import annotations
 
-import math
-
-import numpy as np
 import pytest
 from paths import LIBRSF
 
 from robotd.config.model import parse
-from robotd.logs.sensorlog import Event, IpsFix, Meta, Truth
+from robotd.logs.sensorlog import Event, Meta
 from robotd.offline import librsf
 from robotd.offline.experiment import through_log_format
 from robotd.offline.metrics import ErrorStats
 from robotd.offline.replay import replay
-from robotd.sim.ips import Hedgehog, IpsParams
+from robotd.sim.ips import IpsParams
+from robotd.sim.refix import refixed
 
 pytestmark = pytest.mark.skipif(not LIBRSF.is_dir(), reason="the shared libRSF dataset is not beside the repository")
 
 
 def _with_simulated_fixes(seed: int) -> tuple[Meta, list[Event]]:
-    """The dataset's odometry and truth, its UWB fixes replaced by the virtual hedgehog's (12 Hz, 2 cm noise, 50-150 ms
-    latency, measurement times stated, no outliers) measuring the truth."""
+    """The dataset's odometry and truth, its UWB fixes replaced by the virtual hedgehog's measuring the truth (12 Hz,
+    2 cm noise, 50-150 ms latency, measurement times stated, no outliers), as `robotd simulate-fixes --kind clean`."""
     meta, events = librsf.convert(LIBRSF)
-    truth = [e for e in events if isinstance(e, Truth)]
-    t, x, y = (np.array([getattr(e, k) for e in truth]) for k in ("t", "x", "y"))
-    params = IpsParams(noise_m=0.02, outage_rate_per_min=0.0, outlier_burst_rate_per_min=0.0)
-    hedgehog = Hedgehog(params, seed, start_s=float(t[0]))
-    while hedgehog.next_measurement_s < t[-1]:
-        now = hedgehog.next_measurement_s
-        hedgehog.measure(now, float(np.interp(now, t, x)), float(np.interp(now, t, y)))
-    fixes = [
-        IpsFix(p.arrival_s, p.x_mm / 1000.0, p.y_mm / 1000.0, p.z_mm / 1000.0, p.measured_s)
-        for p in hedgehog.due(math.inf)
-        if p.available
-    ]
-    kept = [e for e in events if not isinstance(e, IpsFix)]
-    return meta, sorted([*kept, *fixes], key=lambda e: e.t)
+    params = IpsParams(noise_m=0.02)
+    return meta, refixed(events, params, "clean", seed, (0.0, 0.0))
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
