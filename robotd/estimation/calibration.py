@@ -482,4 +482,4 @@ def _residuals_and_jacobian(
     return zs - f0, jac
 
 
-__all__ = ["Calibration", "CalibrationLimits", "Calibrator"]
+__all__ = ["TAU_K", "Calibration", "CalibrationLimits", "Calibrator"]

@@ -34,7 +34,7 @@ from math import isfinite
 from robotd import kinematics
 from robotd.config.model import EkfConfig
 from robotd.estimation import ekf
-from robotd.estimation.calibration import Calibration, CalibrationLimits, Calibrator
+from robotd.estimation.calibration import TAU_K, Calibration, CalibrationLimits, Calibrator
 from robotd.estimation.fixgate import Diagnostics, FixGate
 from robotd.estimation.heading import HeadingAligner, HeadingCheck, RotationFit, trimmed_rotation_fit
 from robotd.estimation.history import NO_PROVISIONAL_HEADING, Anchor, FixRecord, History, Predictor, State
@@ -253,6 +253,8 @@ class Estimator:
             t_meas = t
         elif not timed:
             t_meas = t - self._calibration.latency_s  # the learnt delay
+        else:
+            t_meas = min(t_meas - self.clock_offset_s, t)  # where the time check puts it on the odometry's clock
         history, track = self._history, self._track
         if history.times[0] == -math.inf:
             self._set_clock(t_meas)
@@ -358,6 +360,19 @@ class Estimator:
         if self._calibrator is not None:
             sx, sy, sw = calibration.sigmas[:3]
             self._predictor.scale_var = ((sx / kx) ** 2, (sy / ky) ** 2, (sw / kw) ** 2)
+
+    @property
+    def clock_offset_s(self) -> float:
+        """How far fixes' stated measurement times run ahead of the odometry's clock, when the time check finds it
+        beyond twice its own sigma (0 until then, and without stated times).
+
+        Odometry stamps follow the source's convention (a twist stamped at the start, middle or end of the interval
+        it averages; a driver's pipeline), which no log states: a timed fix is placed where the check puts it on the
+        odometry's track, as an untimed one is placed by its learnt delay.
+        """
+        calibration = self._calibration
+        error = calibration.time_error_s
+        return error if calibration.windows and abs(error) > 2.0 * calibration.sigmas[TAU_K] else 0.0
 
     @property
     def calibration(self) -> Calibration:

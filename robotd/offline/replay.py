@@ -50,7 +50,10 @@ class _Estimates:
     cov: list[ekf.Cov] = field(default_factory=list)
 
     def append(self, t: float, estimate: tuple[float, float, float, ekf.Cov | None]) -> None:
-        """Add the estimate (x, y, theta, P or None) at t."""
+        """Add the estimate (x, y, theta, P or None) at t; one no later than the previous is left out (a clock's
+        correction that stepped back: a track runs forward)."""
+        if self.t and t <= self.t[-1]:
+            return
         x, y, theta, p = estimate
         self.t.append(t)
         self.x.append(x)
@@ -195,7 +198,7 @@ def replay(log: SensorLog, config: RobotdConfig, start: calibration_store.Saved 
         for estimates, est in outputs:
             position = est.position(t)
             if position is not None:
-                estimates.append(t, position)
+                estimates.append(t + est.clock_offset_s, position)
         if odometry is not None:  # never placed by a fix: the initial pose carried
             pose = odometry.pose(t)
             taken[3].append(t, (pose.x, pose.y, pose.theta, None))
