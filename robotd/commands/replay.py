@@ -131,11 +131,14 @@ def _line_number(problem: str) -> int:
 
 
 def run_convert(args: argparse.Namespace) -> int:
-    """Convert the dataset; 1 when it cannot be read."""
+    """Convert the dataset; 1 when it cannot be read, 73 when the log cannot be written."""
     try:
         count = librsf.write(Path(args.folder), Path(args.out))
     except librsf.DatasetError as error:
         print(f"robotd convert-librsf: {error}", file=sys.stderr)
         return 1
+    except OSError as error:
+        print(f"robotd convert-librsf: --out {args.out}: {error.strerror or error}", file=sys.stderr)
+        return EX_CANTCREAT
     print(f"wrote {count} events to {args.out}")
     return 0

@@ -70,8 +70,10 @@ def convert(folder: Path) -> tuple[Meta, list[Event]]:
 
 
 def write(folder: Path, out: Path) -> int:
-    """Convert the dataset in `folder` to the log file `out`; returns the number of events."""
+    """Convert the dataset in `folder` to the log file `out` (its folder made if missing); returns the number of
+    events."""
     meta, events = convert(folder)
+    out.parent.mkdir(parents=True, exist_ok=True)
     with open(out, "w", encoding="utf-8") as stream:
         writer = LogWriter(stream, meta)
         for event in events:

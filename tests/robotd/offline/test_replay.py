@@ -148,6 +148,19 @@ def test_librsf_real_data_beats_its_dead_reckoning_and_its_fixes(tmp_path: Path)
 def test_convert_librsf_reports_a_missing_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["convert-librsf", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x.jsonl")]) == 1
     assert "cannot read" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not LIBRSF.is_dir(), reason="the shared libRSF dataset is not beside the repository")
+def test_convert_librsf_makes_the_output_folder_and_says_when_it_cannot(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert cli.main(["convert-librsf", str(LIBRSF), "--out", str(tmp_path / "new" / "librsf.jsonl")]) == 0
+    assert (tmp_path / "new" / "librsf.jsonl").is_file()
+    (tmp_path / "a_file").write_text("")
+    assert cli.main(["convert-librsf", str(LIBRSF), "--out", str(tmp_path / "a_file" / "librsf.jsonl")]) == 73
+    err = capsys.readouterr().err
+    assert "--out" in err
+    assert "Traceback" not in err
     with pytest.raises(librsf.DatasetError):
         librsf.convert(tmp_path)
 
