@@ -13,6 +13,10 @@ from robotd.sim.scenarios import SCENARIOS
 from robotd.sim.variants import VARIANTS
 
 DEFAULT_SIM_CONFIG = "config/sim.yaml"
+# sysexits.h, as robotd replay's
+EX_DATAERR = 65  # the log has no truth to measure fixes on, or no usable beacon offset
+EX_NOINPUT = 66  # the log cannot be read
+EX_CANTCREAT = 73  # the output cannot be written
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -102,6 +106,7 @@ def run_simulate_fixes(args: argparse.Namespace) -> int:
     """Write the log with simulated fixes; a log that cannot be read or has no usable truth gives one line and a
     sysexits status (66, 65), an output that cannot be written 73."""
     from robotd.logs.sensorlog import IpsFix, LogWriter, Meta, read_log  # noqa: PLC0415 - only this one writes logs
+    from robotd.offline.replay import beacon_offset  # noqa: PLC0415 - read as robotd replay reads it
     from robotd.sim.refix import TruthError, refixed  # noqa: PLC0415 - nor simulates fixes
     from robotd.sim.world import ips_params  # noqa: PLC0415
 
@@ -111,14 +116,16 @@ def run_simulate_fixes(args: argparse.Namespace) -> int:
         log = read_log(args.log)
     except OSError as error:
         print(f"robotd simulate-fixes: {args.log}: {error.strerror or error}", file=sys.stderr)
-        return 66
-    offset = log.meta.robot.get("ips_offset", config.robot.ips_offset_m)
+        return EX_NOINPUT
+    offset, problem = beacon_offset(log, config)
+    if problem is not None:  # fixes of a beacon placed by a guess would be worth nothing
+        print(f"robotd simulate-fixes: {args.log}: {problem}", file=sys.stderr)
+        return EX_DATAERR
     try:
-        ox, oy = (float(v) for v in offset)
-        events = refixed(log.events, ips_params(config.sim), args.kind, seed, (ox, oy))
-    except (TruthError, TypeError, ValueError) as error:
+        events = refixed(log.events, ips_params(config.sim), args.kind, seed, offset)
+    except TruthError as error:
         print(f"robotd simulate-fixes: {args.log}: {error}", file=sys.stderr)
-        return 65
+        return EX_DATAERR
     source = f"{log.meta.source}; fixes: robotd simulate-fixes --kind {args.kind} --seed {seed}".lstrip("; ")
     out = Path(args.out)
     try:
@@ -129,7 +136,7 @@ def run_simulate_fixes(args: argparse.Namespace) -> int:
                 writer.write(event)
     except OSError as error:
         print(f"robotd simulate-fixes: --out {out}: {error.strerror or error}", file=sys.stderr)
-        return 73
+        return EX_CANTCREAT
     fixes = sum(1 for event in events if isinstance(event, IpsFix))
     print(f"{out}: {args.log}'s odometry and truth, {fixes} {args.kind} fixes (seed {seed}) from the virtual hedgehog")
     return 0

@@ -121,19 +121,24 @@ def robot_from_log(
         number("ly", config.robot.ly_m, 1e-3, 100.0),
     )
     cpr = int(number("counts_per_rev", config.encoders.counts_per_rev, 1.0, 1e9))
+    offset, problem = beacon_offset(log, config)
+    if problem is not None:
+        problems.append(f"{problem}; using {list(offset)}")
+    return geometry, offset, cpr, problems
+
+
+def beacon_offset(log: SensorLog, config: RobotdConfig) -> tuple[tuple[float, float], str | None]:
+    """The beacon's offset from the robot's centre: the log's meta.robot.ips_offset, else the configuration's; with
+    why the meta's is not used when it is unusable (None when it was fine or absent)."""
     offset = config.robot.ips_offset_m
-    raw = robot.get("ips_offset", list(offset))
+    raw = log.meta.robot.get("ips_offset", list(offset))
     if (
         isinstance(raw, list)
         and len(raw) == 2
         and all(isinstance(v, int | float) and not isinstance(v, bool) and abs(v) <= 100.0 for v in raw)
     ):
-        offset = (float(raw[0]), float(raw[1]))
-    else:
-        problems.append(
-            f"meta.robot.ips_offset: must be a list of 2 numbers within ±100, got {raw!r}; using {list(offset)}"
-        )
-    return geometry, offset, cpr, problems
+        return (float(raw[0]), float(raw[1])), None
+    return offset, f"meta.robot.ips_offset: must be a list of 2 numbers within ±100, got {raw!r}"
 
 
 def replay(log: SensorLog, config: RobotdConfig, start: calibration_store.Saved | None = None) -> ReplayResult:

@@ -116,4 +116,11 @@ def test_the_cli_says_what_is_wrong_with_its_input(tmp_path: Path, capsys: pytes
         LogWriter(stream, Meta()).write(TwistSample(0.0, 0.1, 0.0, 0.0))
     assert cli.main(["simulate-fixes", str(no_truth), "--out", out, "--config", str(SIM_CONFIG)]) == 65
     assert "no truth to measure fixes on" in capsys.readouterr().err
+    bad_offset = tmp_path / "bad_offset.jsonl"
+    with bad_offset.open("w", encoding="utf-8") as stream:
+        writer = LogWriter(stream, Meta(robot={"ips_offset": [1e300, 0.0]}))
+        for t in (0.0, 1.0):
+            writer.write(Truth(t, 0.1 * t, 0.0, 0.0))
+    assert cli.main(["simulate-fixes", str(bad_offset), "--out", out, "--config", str(SIM_CONFIG)]) == 65
+    assert "meta.robot.ips_offset: must be a list of 2 numbers" in capsys.readouterr().err  # as robotd replay says
     assert not Path(out).exists()
