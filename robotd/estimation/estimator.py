@@ -46,6 +46,9 @@ from robotd.estimation.wheelsteps import TickKinematics, WheelFeed
 LATENCY_PRIOR_SIGMA_S = 0.1  # how far the delay of fixes without a measurement time may be from the assumed one
 TIME_CHECK_SIGMA_S = 0.03  # how far a fix's stated measurement time may be off
 PROVISIONAL_MAX_SIGMA_RAD = 0.3  # a short track's first-order sigma beyond this is no guide (one was 5 sigma off)
+# a twist's stamp marks the start, the middle or the end of the interval the sample averages (no log says which): the
+# three equally likely put the motion's true time within +-half a period of the stamp, variance period^2 / 6
+STAMP_CONVENTION_VAR = 1.0 / 6.0
 TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
 
 
@@ -125,6 +128,9 @@ class Estimator:
         first = Anchor(-math.inf, x0, y0, ekf.wrap_angle(th0), ekf.cov_diag(*c.initial_sigma), None)
         self._history = History(self._track, self._predictor, first, c.history_s, keep_past=c.latency_compensation)
         self._last_accept_t = -math.inf
+        self._twist_period_s = 0.0  # the twist samples' period (a running mean of their intervals)
+        self._last_twist_t = -math.inf
+        self._fixes_timed = False  # whether the newest fix stated its measurement time
         self._wheels = WheelFeed(TickKinematics(geometry, counts_per_rev), c.predict_period_s)
         # the state at the newest step: (newest anchor, that step's list index, the state there), or None
         self._newest: tuple[Anchor, int, State] | None = None
@@ -186,6 +192,11 @@ class Estimator:
             self.counters["dropped_out_of_order"] += 1
             return
         self.counters["twists"] += 1
+        gap = t - self._last_twist_t
+        if 0.0 < gap < 1.0:  # a longer gap is a pause in the stream, not its period
+            period = self._twist_period_s
+            self._twist_period_s = gap if period == 0.0 else 0.9 * period + 0.1 * gap
+        self._last_twist_t = t
         track = self._track
         if not len(track):
             self._step_to(t, (vx, vy, wz), (vx, vy, wz))
@@ -247,6 +258,7 @@ class Estimator:
             return None
         timed = isfinite(t_meas)  # a fix without a measurement time (NaN) is stated at its arrival
         stated = t_meas if timed else t
+        self._fixes_timed = timed
         if not timed:
             counters["untimed_fixes"] += 1
         if not self.config.latency_compensation or t_meas > t:
@@ -373,6 +385,20 @@ class Estimator:
         calibration = self._calibration
         error = calibration.time_error_s
         return error if calibration.windows and abs(error) > 2.0 * calibration.sigmas[TAU_K] else 0.0
+
+    @property
+    def time_sigma_s(self) -> float:
+        """How uncertain an estimate's time is on the fixes' clock (s), given as uncertainty along the motion in its
+        covariance: a twist stream's stamp convention (STAMP_CONVENTION_VAR) until timed fixes have been checked
+        against the odometry (clock_offset_s); 0 for wheel ticks (counts are read at their time) and for the
+        filters that calibrate nothing.
+
+        Without stated times the fixes' delay is learnt against the odometry's clock, so it absorbs the stamps'
+        offset (the two are one unknown) and every estimate sits on the odometry's clock, up to half a period off.
+        """
+        if self._calibrator is None or (self._fixes_timed and self._calibration.windows):
+            return 0.0
+        return self._twist_period_s * math.sqrt(STAMP_CONVENTION_VAR)
 
     @property
     def calibration(self) -> Calibration:
@@ -513,8 +539,9 @@ class Estimator:
         """Time, pose, twist in force and P of the newest state carried forward to t when t is later (one prediction
         step with the twist in force: the mean as eq. 5, P as eq. 7).
 
-        P includes the fixes' correlated error (calibration.fix_correlated_var): the filter fuses fixes as if their
-        errors were independent, which averages away an error they share; the estimate cannot be surer than that.
+        P includes the uncertainty of the estimate's time (time_sigma_s, along the motion) and the fixes' correlated
+        error (calibration.fix_correlated_var): the filter fuses fixes as if their errors were independent, which
+        averages away an error they share; the estimate cannot be surer than that.
         """
         newest_step = self._track.t[-1] if self._track.t else -math.inf
         when = max(newest_step, self._history.newest.t)
@@ -528,6 +555,13 @@ class Estimator:
             # the same process model as a step: the covariance grows with the motion the extrapolation assumes
             x, y, th, p, _ = self._predictor.move((x, y, th, p, sens), raw, t - when)
             when = t
+        tau = self.time_sigma_s
+        if tau > 0.0:  # an error tau in the estimate's time is an error u * tau in its pose, along the motion
+            c, s = math.cos(th), math.sin(th)
+            ux, uy = (c * u[0] - s * u[1]) * tau, (s * u[0] + c * u[1]) * tau
+            uw = u[2] * tau
+            xx, xy, xt, yy, yt, tt = p
+            p = (xx + ux * ux, xy + ux * uy, xt + ux * uw, yy + uy * uy, yt + uy * uw, tt + uw * uw)
         shared = self._calibration.fix_correlated_var
         if shared > 0.0:
             p = (p[0] + shared, p[1], p[2], p[3] + shared, p[4], p[5])

@@ -386,3 +386,43 @@ def test_a_robot_driving_off_facing_away_from_the_guess_is_followed_before_its_h
     # the fixes so far give a provisional heading: the position moves with the robot, not against it along the guess
     # (off by twice the distance since the last fix) nor held where the last fix put it (off by that distance)
     assert math.hypot(pose.x - x, pose.y - y) < 0.02
+
+
+def _twist_stream(est: Estimator, period: float, until: float, *, timed: bool, start: float = 0.0) -> None:
+    """Drive straight at 0.4 m/s from x = 0.4 start, twists every `period`, 8 Hz fixes of the truth (stated or not)."""
+    nan = math.nan
+    t, next_fix = start, start + 0.125
+    while t < until - 1e-9:
+        t += period
+        est.on_twist(t, 0.4, 0.0, 0.0)
+        while next_fix <= t:
+            est.on_fix(next_fix, 0.4 * next_fix, 0.0, next_fix if timed else nan)
+            next_fix += 0.125
+
+
+def test_an_estimate_from_twists_is_uncertain_in_time_by_the_stamp_convention_until_timed_fixes_check_it() -> None:
+    known_heading = _config(initial_sigma=(0.05, 0.05, 0.05))
+    untimed = Estimator(known_heading, GEOMETRY, (0.0, 0.0), CPR)
+    _twist_stream(untimed, 0.1, 20.0, timed=False)
+    assert untimed.time_sigma_s == pytest.approx(0.1 / math.sqrt(6.0), rel=0.02)
+    # that uncertainty is the motion's: along it (x here) while moving, gone once the robot stops
+    moving = untimed.pose()
+    untimed.on_twist(moving.t + 0.1, 0.0, 0.0, 0.0)
+    stopped = untimed.pose()
+    tau_var = (0.4 * untimed.time_sigma_s) ** 2
+    assert moving.cov[0] - stopped.cov[0] > 0.8 * tau_var
+    assert stopped.cov[4] >= moving.cov[4]
+    timed = Estimator(known_heading, GEOMETRY, (0.0, 0.0), CPR)
+    _twist_stream(timed, 0.1, 1.0, timed=True)
+    assert timed.time_sigma_s > 0.0  # the check has not run yet
+    _twist_stream(timed, 0.1, 60.0, timed=True, start=1.0)
+    assert timed.calibration.windows > 0
+    assert timed.time_sigma_s == 0.0
+    wheels = Estimator(known_heading, GEOMETRY, (0.0, 0.0), CPR)
+    for i in range(1, 200):
+        wheels.on_wheels(0.1 * i, (40 * i, 40 * i, 40 * i, 40 * i))
+        wheels.on_fix(0.1 * i, 0.0, 0.0, math.nan)
+    assert wheels.time_sigma_s == 0.0  # counts are read at their time
+    paper = Estimator(paper_preset(known_heading), GEOMETRY, (0.0, 0.0), CPR)
+    _twist_stream(paper, 0.1, 5.0, timed=False)
+    assert paper.time_sigma_s == 0.0
