@@ -45,7 +45,9 @@ from robotd.estimation.wheelsteps import TickKinematics, WheelFeed
 
 LATENCY_PRIOR_SIGMA_S = 0.1  # how far the delay of fixes without a measurement time may be from the assumed one
 TIME_CHECK_SIGMA_S = 0.03  # how far a fix's stated measurement time may be off
-PROVISIONAL_MAX_SIGMA_RAD = 0.3  # a short track's first-order sigma beyond this is no guide (one was 5 sigma off)
+# a rotation fit's sigma is first order (sin s ~ s, 4 % off at 0.5 rad, 10 % at 0.8): beyond it, no guide (a short
+# track's fit at 0.8 was a wrong direction on the libRSF start, one at 0.3+ was once 5 sigma off)
+PROVISIONAL_MAX_SIGMA_RAD = 0.5
 # a twist's stamp marks the start, the middle or the end of the interval the sample averages (no log says which): the
 # three equally likely put the motion's true time within +-half a period of the stamp, variance period^2 / 6
 STAMP_CONVENTION_VAR = 1.0 / 6.0

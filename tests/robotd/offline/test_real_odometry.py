@@ -38,9 +38,10 @@ def test_a_robot_starting_in_an_untold_direction_is_tracked_better_than_by_its_f
     assert isinstance(fixes, ErrorStats)
     assert result.counters["heading_realigned"] >= 1
     # the robot drives off facing about 180 degrees from the filter's guess: moving the position along the guess
-    # until the heading is aligned put it up to 0.2 m off (2-3x the fixes' largest error, RMSE above theirs)
+    # until the heading is aligned put it up to 0.2 m off (2-3x the fixes' largest error, RMSE above theirs); holding
+    # the position until a fit of sigma 0.3 rad let it lag the first half-second of driving, 1.3x their largest
     assert ours.rmse_m < fixes.rmse_m
-    assert ours.max_m < 2.0 * fixes.max_m
+    assert ours.max_m < fixes.max_m
 
 
 def _shifted(events: list[Event], dt: float) -> list[Event]:
