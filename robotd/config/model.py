@@ -267,6 +267,11 @@ class EkfConfig:
         "Chi-square (2 dof) probability of the gate: fixes beyond it are rejected.",
         in_range(0.5, 0.999999),
     )
+    confirm_far_fixes: bool = setting(
+        True,
+        "A fix inside the gate only because the position is uncertain (it would fail the gate were the prediction as"
+        " good as a fix) is fused once the next fix agrees with it: a gate that wide cannot tell it from an outlier.",
+    )
     odom_along_sigma_m: float = setting(
         0.02, "Odometry position error along the body x axis, std per sqrt(metre travelled).", non_negative
     )
@@ -403,6 +408,7 @@ def paper_preset(ekf: EkfConfig) -> EkfConfig:
         unknown_heading_sigma_rad=math.inf,
         seed_fixes=0,
         gating=False,
+        confirm_far_fixes=False,
         odom_along_sigma_m=0.0,
         odom_across_sigma_m=0.0,
         slip_heading_sigma_rad=0.0,

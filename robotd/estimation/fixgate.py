@@ -2,7 +2,12 @@
 
 - Until the position is placed, fixes are held as candidates: `seed_fixes` that agree with each other seed it (a
   first fix may be an outlier). With none configured (the paper's filter), the first fix is judged like any other.
-- Then a fix is accepted when its NIS is within the chi-square gate (2 dof). Rejected fixes are remembered: when
+- Then a fix is accepted when its NIS is within the chi-square gate (2 dof), unless it is there only because the
+  position is uncertain (`confirm_far_fixes`): a fix that would fail the gate were the prediction as good as a fix (as
+  configured, or as learnt when noisier) is held (UNCONFIRMED) and fused once the next fix agrees with it. After an
+  outage or a burst of outliers the gate is wide (metres after seconds without a fix): within it a lone outlier
+  looks like a fix that shows the drift, and took the position 0.7 m off (a real robot's start with the heading
+  unknown). Rejected fixes are remembered: when
   they keep coming for `recovery_min_s` and agree with each other once the odometry motion is removed (as
   innovations), the position is re-seeded on them (the robot was carried, or the filter drifted); one consistent
   burst of outliers is too short to do that.
@@ -82,16 +87,19 @@ class FixGate:
             return Verdict.SEEDED
         if config.adaptive_ips_noise and self._samples_noise(inn, r):
             self._learn_noise(inn, r)
+        rejection = Verdict.GATED
         if not config.gating or inn.nis <= self.gate:
-            self.rejected.clear()
-            counters["fixes_accepted"] += 1
-            return Verdict.ACCEPTED
+            if not (config.confirm_far_fixes and self._unconfirmed(t_meas, inn, r)):
+                self.rejected.clear()
+                counters["fixes_accepted"] += 1
+                return Verdict.ACCEPTED
+            rejection = Verdict.UNCONFIRMED
         self.rejected.append((t_meas, inn.nu_x, inn.nu_y))
         if self._recoverable():
             counters["recoveries"] += 1
             return Verdict.RECOVERED
         counters["fixes_rejected"] += 1
-        return Verdict.GATED
+        return rejection
 
     def seed_shift(self, verdict: Verdict) -> tuple[float, float]:
         """Where a SEEDED or RECOVERED verdict moves the beacon: the median innovation of the agreeing fixes."""
@@ -131,6 +139,15 @@ class FixGate:
         my = sorted(e[2] for e in innovations)[len(innovations) // 2]
         tolerance = max(self.config.recovery_agreement_m, 4.0 * math.sqrt(self.r))
         return all(math.hypot(e[1] - mx, e[2] - my) <= tolerance for e in innovations)
+
+    def _unconfirmed(self, t_meas: float, inn: ekf.Innovation, r: float) -> bool:
+        """Whether a fix inside the gate is beyond it for a prediction as good as a fix (S = 2r, r at least the
+        configured ips_sigma_m^2), and the fix before it (the newest rejected one) does not agree with it."""
+        # the configured noise as a floor: a learnt r below the true noise (a conservative P leaves less of the
+        # innovations to the fixes) would hold ordinary fixes
+        if inn.nu_x * inn.nu_x + inn.nu_y * inn.nu_y <= 2.0 * max(r, self.config.ips_sigma_m**2) * self.gate:
+            return False
+        return not (self.rejected and self._agree([self.rejected[-1], (t_meas, inn.nu_x, inn.nu_y)]))
 
     def _recoverable(self) -> bool:
         """Rejections persisted long enough, and the latest of them agree with each other."""

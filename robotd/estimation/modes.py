@@ -38,6 +38,7 @@ class Verdict(enum.Enum):
     SEEDING = "seeding"  # held until enough fixes agree (a first fix may be an outlier)
     RECOVERED = "recovered"  # rejected fixes agreed long enough: the position was re-seeded
     GATED = "gated"  # rejected: NIS beyond the gate
+    UNCONFIRMED = "unconfirmed"  # inside a gate made wide by an uncertain position, far from it: the next fix decides
     TOO_OLD = "too_old"  # measured before the history's start
 
 
@@ -71,8 +72,8 @@ P, H, V, E = PositionMode, HeadingMode, Verdict, HeadingEvidence
 
 POSITION_TRANSITIONS: dict[PositionMode, dict[Verdict, PositionMode]] = {
     P.INITIALISING: {V.SEEDING: P.INITIALISING, V.SEEDED: P.TRACKING, V.ACCEPTED: P.TRACKING},
-    P.TRACKING: {V.ACCEPTED: P.TRACKING, V.GATED: P.REJECTING, V.RECOVERED: P.TRACKING},
-    P.REJECTING: {V.ACCEPTED: P.TRACKING, V.GATED: P.REJECTING, V.RECOVERED: P.TRACKING},
+    P.TRACKING: {V.ACCEPTED: P.TRACKING, V.GATED: P.REJECTING, V.UNCONFIRMED: P.REJECTING, V.RECOVERED: P.TRACKING},
+    P.REJECTING: {V.ACCEPTED: P.TRACKING, V.GATED: P.REJECTING, V.UNCONFIRMED: P.REJECTING, V.RECOVERED: P.TRACKING},
 }
 """The position mode after a fix's verdict (a fix too old to place changes nothing)."""
 

@@ -46,6 +46,7 @@ VERDICT_COLOURS: dict[str, tuple[float, float, float, float]] = {
     "recovered": (0.0, 0.8, 0.9, 0.9),  # cyan: re-seeded the position after a lock-out
     "seeding": (0.6, 0.6, 0.6, 0.9),  # grey: held until enough fixes agree
     "gated": (0.95, 0.15, 0.1, 0.9),  # red: rejected by the gate
+    "unconfirmed": (0.95, 0.45, 0.6, 0.9),  # pink: inside a wide gate, far from the estimate; the next fix decides
     "too_old": (1.0, 0.6, 0.0, 0.9),  # orange: measured before the filter's history
     "dropped": (0.0, 0.0, 0.0, 0.9),  # black: not finite, never judged
 }

@@ -426,3 +426,57 @@ def test_an_estimate_from_twists_is_uncertain_in_time_by_the_stamp_convention_un
     paper = Estimator(paper_preset(known_heading), GEOMETRY, (0.0, 0.0), CPR)
     _twist_stream(paper, 0.1, 5.0, timed=False)
     assert paper.time_sigma_s == 0.0
+
+
+def _outage(est: Estimator, start: float, seconds: float, reported: float) -> float:
+    """Drive straight at 0.3 m/s without fixes for `seconds`, the odometry reporting `reported` of the speed; returns
+    the true x at the end (the robot at x = 0.3 start at `start`)."""
+    t = start
+    while t < start + seconds - 1e-9:
+        t += 0.01
+        est.on_twist(t, 0.3 * reported, 0.0, 0.0)
+    return 0.3 * t
+
+
+def _after_outage(reported: float, *, config: EkfConfig | None = None) -> tuple[Estimator, float]:
+    est = Estimator(config or _config(initial_sigma=(0.05, 0.05, 0.05)), GEOMETRY, (0.0, 0.0), CPR)
+    _drive(est, 5.0, (0.3, 0.0, 0.0), noise=0.02)
+    return est, _outage(est, 5.0, 8.0, reported)
+
+
+def test_after_an_outage_a_lone_fix_far_from_the_estimate_waits_for_the_next_to_agree() -> None:
+    est, x = _after_outage(1.0)  # the odometry was right: the estimate is where the robot is
+    before = est.pose()
+    s = math.sqrt(before.cov[0])
+    assert s > 0.1  # eight seconds without a fix: the gate is wide enough to let a 0.4 m outlier in
+    outlier = est.on_fix(13.0, x + 0.3, 0.25, 13.0)
+    assert outlier is not None
+    assert outlier.nis <= outlier.gate
+    assert outlier.verdict is Verdict.UNCONFIRMED
+    after = est.pose()
+    assert math.hypot(after.x - before.x, after.y - before.y) < 1e-9  # not fused
+    assert after.cov[0] == pytest.approx(before.cov[0])
+    good = est.on_fix(13.0, x, 0.0, 13.0)  # the next fix disagrees with it and is near the estimate: taken
+    assert good is not None
+    assert good.verdict is Verdict.ACCEPTED
+    assert math.hypot(est.pose().x - x, est.pose().y) < 0.03
+
+
+def test_after_an_outage_that_let_the_odometry_drift_the_second_agreeing_fix_is_fused() -> None:
+    est, x = _after_outage(0.9)  # the odometry said 10 % too little: 0.24 m behind
+    assert x - est.pose().x > 0.2
+    first = est.on_fix(13.0, x, 0.0, 13.0)
+    assert first is not None
+    assert first.verdict is Verdict.UNCONFIRMED
+    second = est.on_fix(13.0, x + 0.01, -0.01, 13.0)
+    assert second is not None
+    assert second.verdict is Verdict.ACCEPTED
+    assert abs(est.pose().x - x) < 0.05
+
+
+def test_without_confirmation_a_far_fix_inside_the_gate_is_fused_at_once_as_by_the_baselines() -> None:
+    assert not paper_preset(_config()).confirm_far_fixes
+    est, x = _after_outage(0.9, config=_config(initial_sigma=(0.05, 0.05, 0.05), confirm_far_fixes=False))
+    first = est.on_fix(13.0, x, 0.0, 13.0)
+    assert first is not None
+    assert first.verdict is Verdict.ACCEPTED

@@ -29,7 +29,8 @@ CPR = 6800
 
 def test_every_position_mode_answers_every_verdict_a_placed_fix_can_get() -> None:
     for mode in (PositionMode.TRACKING, PositionMode.REJECTING):
-        assert set(POSITION_TRANSITIONS[mode]) == {Verdict.ACCEPTED, Verdict.GATED, Verdict.RECOVERED}
+        placed = {Verdict.ACCEPTED, Verdict.GATED, Verdict.UNCONFIRMED, Verdict.RECOVERED}
+        assert set(POSITION_TRANSITIONS[mode]) == placed
     assert set(POSITION_TRANSITIONS) == set(PositionMode)
 
 

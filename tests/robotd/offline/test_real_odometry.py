@@ -85,3 +85,20 @@ def test_without_measurement_times_the_estimates_are_as_uncertain_as_the_odometr
     assert honesty.inside_95 >= 0.9
     assert honesty.nees_mean is not None
     assert 1.0 <= honesty.nees_mean <= 3.0
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_outliers_at_start_up_do_not_lose_a_robot_whose_odometry_is_10_percent_off(seed: int) -> None:
+    meta, events = _with_simulated_fixes(seed, "harsh")
+    fast = [TwistSample(e.t, 1.1 * e.vx, 1.1 * e.vy, 1.1 * e.wz) if isinstance(e, TwistSample) else e for e in events]
+    result = replay(through_log_format(meta, fast), parse(""))
+    assert result.metrics is not None
+    ours = result.metrics["ekf"]
+    assert isinstance(ours, ErrorStats)
+    honesty = result.consistency["ekf"]
+    # seed 3: an outlier 0.7 m off fell inside the gate made wide by the unknown heading's start and was fused; the
+    # position was lost until a recovery 1.5 s later (RMSE 0.28 m, maximum 1.26 m, NEES 6.3)
+    assert ours.rmse_m < 0.1
+    assert ours.max_m < 0.6
+    assert honesty.nees_mean is not None
+    assert honesty.nees_mean <= 4.0
