@@ -557,7 +557,7 @@ class Estimator:
             # the same process model as a step: the covariance grows with the motion the extrapolation assumes
             x, y, th, p, _ = self._predictor.move((x, y, th, p, sens), raw, t - when)
             when = t
-        tau = self.time_sigma_s
+        tau = self.time_sigma_s if self._twist_period_s > 0.0 else 0.0  # per output: wheel counts skip the call
         if tau > 0.0:  # an error tau in the estimate's time is an error u * tau in its pose, along the motion
             c, s = math.cos(th), math.sin(th)
             ux, uy = (c * u[0] - s * u[1]) * tau, (s * u[0] + c * u[1]) * tau
