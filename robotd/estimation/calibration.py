@@ -47,6 +47,7 @@ SCALE_WALK = 0.01**2 / 60.0  # variance per second: a scale drifts about 1 % a m
 LATENCY_WALK = 0.005**2 / 60.0  # s^2 per second: a delay drifts about 5 ms a minute at most
 MAX_WINDOW_S = 60.0  # a window that has not travelled its length by then starts again (bounded memory)
 TRIM_SIGMAS = 4.0
+PLACEMENT_DOF = 2.0  # per axis: the window's placement (tx, ty, phi, psi) fitted to the fixes absorbs that much error
 
 
 @dataclass(frozen=True, slots=True)
@@ -280,6 +281,12 @@ class Calibrator:
         if not np.all(np.isfinite(cal)):
             return False
         n = int(keep.sum())
+        # the residuals are the fixes' error less what the window's placement absorbed: an unbiased variance divides
+        # by the fixes' worth less the placement's degrees of freedom (n - p); with errors that persist the fixes are
+        # worth n (1 - rho) / (1 + rho), so the placement absorbs most of a shared error (a real UWB's, rho 0.87: the
+        # residuals put its noise at 40 % of the truth) - at most a factor of 3, for a window worth few fixes
+        worth = n * information(rho)
+        sigma2 *= worth / max(worth - PLACEMENT_DOF, worth / 3.0)
         # what fusing many fixes cannot average away: their error shared from one fix to the next (smoothed)
         # (only a correlation beyond chance, 2 / sqrt(n): the path's own small deformations by slip are not the fixes')
         persistent = beyond_chance(rho, n)

@@ -134,6 +134,10 @@ def test_fixes_sharing_a_slowly_varying_error_do_not_move_the_scales_but_are_dis
     white = _circle_drive(rng.normal(0.0, 0.03, (n, 2)), 1.08)
     assert white.kx == pytest.approx(1.08, abs=0.02)  # the same drive with independent fixes calibrates
     assert white.fix_correlation < 0.2
+    # the fixes' noise per axis, as fused: each window's placement absorbs much of an error that persists, and the
+    # residuals alone put 0.1 m at 0.073 m
+    assert correlated.fix_var == pytest.approx(0.1**2, rel=0.25)
+    assert white.fix_var == pytest.approx(0.03**2, rel=0.15)
 
 
 def test_a_heading_fit_judges_the_fixes_before_the_first_window_and_the_window_replaces_it() -> None:
