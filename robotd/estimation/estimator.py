@@ -36,7 +36,7 @@ from robotd.config.model import EkfConfig
 from robotd.estimation import ekf
 from robotd.estimation.calibration import TAU_K, Calibration, CalibrationLimits, Calibrator
 from robotd.estimation.fixgate import Diagnostics, FixGate
-from robotd.estimation.heading import HeadingAligner, HeadingCheck, RotationFit, trimmed_rotation_fit
+from robotd.estimation.heading import HeadingAligner, HeadingCheck, RotationFit
 from robotd.estimation.history import NO_PROVISIONAL_HEADING, Anchor, FixRecord, History, Predictor, State
 from robotd.estimation.modes import Modes, PositionMode, Verdict
 from robotd.estimation.process_noise import ProcessNoiseScale
@@ -470,8 +470,7 @@ class Estimator:
         fit), by the share of the motion that its sigma expects (robotd.estimation.history.Predictor)."""
         aligner = self._aligner
         provisional = NO_PROVISIONAL_HEADING
-        tolerance = 4.0 * math.sqrt(self._fix_gate.r)
-        fit = trimmed_rotation_fit(aligner.oxs, aligner.oys, aligner.zxs, aligner.zys, tolerance)
+        fit = aligner.fit_so_far(self._fix_gate.r)
         if fit is not None:
             rotation, sigma, _, _, spread = fit
             # a short track's few residuals understate the noise (the fit absorbs it): not below the IPS noise in use

@@ -105,6 +105,11 @@ class HeadingAligner:
             for column in (self.zxs, self.zys, self.oxs, self.oys):
                 del column[: MAX_POINTS // 2]
 
+    def fit_so_far(self, r: float) -> tuple[float, float, float, float, FixSpread] | None:
+        """trimmed_rotation_fit of the window's track onto its fixes so far (outliers beyond 4 sigma of the IPS noise
+        variance r trimmed)."""
+        return trimmed_rotation_fit(self.oxs, self.oys, self.zxs, self.zys, 4.0 * math.sqrt(r))
+
     def check(
         self, r: float, now_t: float, now: tuple[float, float, float], dist: float, *, whole: bool = False
     ) -> RotationFit | None:
@@ -125,7 +130,7 @@ class HeadingAligner:
             return None
         self.last_fit_dist = travelled
         self.next_fit = self.start_dist + min(travelled + FIT_SPACING * self.window_m, self.window_m)
-        fit = trimmed_rotation_fit(self.oxs, self.oys, self.zxs, self.zys, 4.0 * math.sqrt(r))
+        fit = self.fit_so_far(r)
         odo, window = self.in_window(now), self.window
         if full:
             self.restart(now_t, now, dist)
