@@ -4,6 +4,7 @@ convert-librsf`."""
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
 import time
@@ -17,10 +18,6 @@ from robotd.offline.replay import format_table, replay, robot_from_log, write_ou
 from robotd.viz.mcaplog import read_any_log
 
 # sysexits.h: what a script calling `robotd replay` can tell apart
-EX_DATAERR = 65  # the log cannot be replayed (no events, times going backwards)
-EX_NOINPUT = 66  # the log cannot be read
-EX_CANTCREAT = 73  # --out cannot be made a directory
-EX_IOERR = 74  # the outputs could not be written
 SHOWN_PROBLEMS = 20  # bad lines listed one by one; beyond, one line counts the rest
 
 
@@ -68,29 +65,29 @@ def run_replay(args: argparse.Namespace) -> int:
     except OSError as error:
         why = "a file is in the way" if isinstance(error, FileExistsError) else error.strerror or str(error)
         print(f"robotd replay: --out {out}: cannot make it a directory: {why}", file=sys.stderr)
-        return EX_CANTCREAT
+        return os.EX_CANTCREAT
     start = None
     if args.calibration:
         try:
             start = calibration_store.read(args.calibration)
         except OSError as error:
             print(f"robotd replay: --calibration {args.calibration}: {error.strerror or error}", file=sys.stderr)
-            return EX_NOINPUT
+            return os.EX_NOINPUT
         except ValueError as error:
             print(f"robotd replay: --calibration {args.calibration}: {error}", file=sys.stderr)
-            return EX_DATAERR
+            return os.EX_DATAERR
     try:
         log = read_any_log(args.log)
     except OSError as error:
         print(f"robotd replay: {args.log}: {error.strerror or error}", file=sys.stderr)
-        return EX_NOINPUT
+        return os.EX_NOINPUT
     read_problems = log.problems
     try:
         log, checked_problems = logcheck.check(log, robot_from_log(log, config)[2])
     except logcheck.LogRefusedError as refusal:
         _report(args.log, [*read_problems, *refusal.problems])
         print(f"robotd replay: {args.log}: {refusal}; nothing replayed", file=sys.stderr)
-        return EX_DATAERR
+        return os.EX_DATAERR
     _report(args.log, [*read_problems, *checked_problems])
     result = replay(log, config, start)
     for problem in result.problems[len(log.problems) :]:
@@ -99,7 +96,7 @@ def run_replay(args: argparse.Namespace) -> int:
         written = write_outputs(result, out)
     except OSError as error:
         print(f"robotd replay: --out {out}: cannot write the outputs: {error}", file=sys.stderr)
-        return EX_IOERR
+        return os.EX_IOERR
     elapsed = time.perf_counter() - started
     print(format_table(result))
     if log.events:
@@ -139,6 +136,6 @@ def run_convert(args: argparse.Namespace) -> int:
         return 1
     except OSError as error:
         print(f"robotd convert-librsf: --out {args.out}: {error.strerror or error}", file=sys.stderr)
-        return EX_CANTCREAT
+        return os.EX_CANTCREAT
     print(f"wrote {count} events to {args.out}")
     return 0

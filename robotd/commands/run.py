@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
 from robotd.config.model import load
 
 DEFAULT_CONFIG = "/etc/robotd/robot.yaml"
-EX_CANTCREAT = 73  # sysexits.h: the sensor log cannot be created
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -53,7 +53,7 @@ def run_daemon_command(args: argparse.Namespace) -> int:
         return run_daemon(config, records.get(".jsonl"), records.get(".mcap"))
     except RecordingError as error:  # before anything started: nothing to stop
         print(f"robotd run: --record: {error}", file=sys.stderr)
-        return EX_CANTCREAT
+        return os.EX_CANTCREAT
 
 
 def _records(paths: list[str]) -> dict[str, Path] | str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -13,10 +14,6 @@ from robotd.sim.scenarios import SCENARIOS
 from robotd.sim.variants import VARIANTS
 
 DEFAULT_SIM_CONFIG = "config/sim.yaml"
-# sysexits.h, as robotd replay's
-EX_DATAERR = 65  # the log has no truth to measure fixes on, or no usable beacon offset
-EX_NOINPUT = 66  # the log cannot be read
-EX_CANTCREAT = 73  # the output cannot be written
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -116,16 +113,16 @@ def run_simulate_fixes(args: argparse.Namespace) -> int:
         log = read_log(args.log)
     except OSError as error:
         print(f"robotd simulate-fixes: {args.log}: {error.strerror or error}", file=sys.stderr)
-        return EX_NOINPUT
+        return os.EX_NOINPUT
     offset, problem = beacon_offset(log, config)
     if problem is not None:  # fixes of a beacon placed by a guess would be worth nothing
         print(f"robotd simulate-fixes: {args.log}: {problem}", file=sys.stderr)
-        return EX_DATAERR
+        return os.EX_DATAERR
     try:
         events = refixed(log.events, ips_params(config.sim), args.kind, seed, offset)
     except TruthError as error:
         print(f"robotd simulate-fixes: {args.log}: {error}", file=sys.stderr)
-        return EX_DATAERR
+        return os.EX_DATAERR
     source = f"{log.meta.source}; fixes: robotd simulate-fixes --kind {args.kind} --seed {seed}".lstrip("; ")
     out = Path(args.out)
     try:
@@ -136,7 +133,7 @@ def run_simulate_fixes(args: argparse.Namespace) -> int:
                 writer.write(event)
     except OSError as error:
         print(f"robotd simulate-fixes: --out {out}: {error.strerror or error}", file=sys.stderr)
-        return EX_CANTCREAT
+        return os.EX_CANTCREAT
     fixes = sum(1 for event in events if isinstance(event, IpsFix))
     print(f"{out}: {args.log}'s odometry and truth, {fixes} {args.kind} fixes (seed {seed}) from the virtual hedgehog")
     return 0

@@ -3,16 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
 from robotd.config.model import RobotdConfig, load, parse
 from robotd.logs import logcheck
 from robotd.logs.sensorlog import SensorLog, read_log
-
-EX_DATAERR = 65
-EX_NOINPUT = 66
-EX_IOERR = 74
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -39,12 +36,12 @@ def run_tune(args: argparse.Namespace) -> int:
             log = read_log(path)
         except OSError as error:
             print(f"robotd tune: {path}: {error.strerror or error}", file=sys.stderr)
-            return EX_NOINPUT
+            return os.EX_NOINPUT
         try:
             log, _ = logcheck.check(log, robot_from_log(log, config)[2])
         except logcheck.LogRefusedError as refusal:
             print(f"robotd tune: {path}: {refusal}", file=sys.stderr)
-            return EX_DATAERR
+            return os.EX_DATAERR
         logs.append(log)
     result = tune(logs, config)
     for path, before, after in zip(args.logs, result.before, result.after, strict=True):
@@ -61,7 +58,7 @@ def run_tune(args: argparse.Namespace) -> int:
             Path(args.out).write_text(snippet, encoding="utf-8")
         except OSError as error:
             print(f"robotd tune: --out {args.out}: {error.strerror or error}", file=sys.stderr)
-            return EX_IOERR
+            return os.EX_IOERR
         print(f"wrote {args.out}")
     else:
         print(snippet, end="")

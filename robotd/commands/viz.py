@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
-
-EX_NOINPUT = 66  # sysexits.h: the input cannot be read
-EX_CANTCREAT = 73  # the output cannot be written
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -30,15 +28,15 @@ def run_convert_log(args: argparse.Namespace) -> int:
         return 2
     if not source.is_file():
         print(f"robotd convert-log: {source}: no such file", file=sys.stderr)
-        return EX_NOINPUT
+        return os.EX_NOINPUT
     try:
         log, count = convert(source, target)
     except McapLogError as error:
         print(f"robotd convert-log: {source}: {error}", file=sys.stderr)
-        return EX_NOINPUT
+        return os.EX_NOINPUT
     except OSError as error:
         print(f"robotd convert-log: {target}: cannot write it: {error.strerror or error}", file=sys.stderr)
-        return EX_CANTCREAT
+        return os.EX_CANTCREAT
     for problem in log.problems:
         print(f"robotd convert-log: {source}: {problem} (skipped)", file=sys.stderr)
     unknown = ", ".join(f"{n} {kind}" for kind, n in sorted(log.unknown_types.items()))

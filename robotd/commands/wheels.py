@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import signal
 import sys
 import time
@@ -11,8 +12,6 @@ import time
 from drivers.pigpiod.client import PigpiodUnavailableError
 from robotd.config.model import RobotdConfig, load
 from robotd.config.motorpins import StopTargets, read_stop_targets
-
-EX_UNAVAILABLE = 69
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -71,7 +70,7 @@ def stop_motors(args: argparse.Namespace) -> int:
         stop_all_motors(targets.motors, targets.pigpiod)
     except PigpiodUnavailableError as error:
         print(f"robotd stop-motors: {error}", file=sys.stderr)
-        return EX_UNAVAILABLE
+        return os.EX_UNAVAILABLE
     print(f"robotd stop-motors: all motor pins low on {targets.pigpiod.host}:{targets.pigpiod.port}")
     return 0
 
@@ -94,7 +93,7 @@ def _stop_gpiod_motors(targets: StopTargets) -> int:
         )
     except (GpioUnavailableError, ValueError) as error:  # ValueError: an enable pin without RP1 PWM
         print(f"robotd stop-motors: {error}", file=sys.stderr)
-        return EX_UNAVAILABLE
+        return os.EX_UNAVAILABLE
     for problem in report.pwm_problems:
         print(f"robotd stop-motors: could not stop {problem}", file=sys.stderr)
     if report.direction_note is not None:
@@ -118,7 +117,7 @@ def spin_wheels(args: argparse.Namespace) -> int:
             time.sleep(args.seconds)
     except PigpiodUnavailableError as error:
         print(f"robotd spin-wheels: {error}", file=sys.stderr)
-        return EX_UNAVAILABLE
+        return os.EX_UNAVAILABLE
     return 0
 
 
@@ -139,5 +138,5 @@ def vpigpiod(args: argparse.Namespace) -> int:
         asyncio.run(serve())
     except OSError as error:
         print(f"robotd vpigpiod: cannot listen on {args.host}:{args.port}: {error}", file=sys.stderr)
-        return EX_UNAVAILABLE
+        return os.EX_UNAVAILABLE
     return 0

@@ -15,6 +15,7 @@ Messages are stamped with the log's time (seconds from its clock's zero).
 from __future__ import annotations
 
 import math
+import os
 import sys
 import threading
 from collections.abc import Iterator
@@ -36,8 +37,6 @@ from robotd.viz.player import McapPlayer
 from robotd.viz.publisher import Publisher, RobotModel, Trail
 
 TRAIL_PERIOD_S = 1.0
-EX_IOERR = 74  # sysexits.h, as `robotd replay` says them
-EX_UNAVAILABLE = 69
 
 
 class _Method:
@@ -123,7 +122,7 @@ def write_and_view(
         write_replay_mcap(log, result, config, path)
     except (OSError, RuntimeError) as error:  # the SDK says RuntimeError for a file it cannot create
         print(f"robotd replay: --mcap {path}: cannot write it: {error}", file=sys.stderr)
-        return EX_IOERR
+        return os.EX_IOERR
     print("wrote " + ", ".join(str(p) for p in [*written, path]))
     if view_port is None:
         return 0
@@ -132,7 +131,7 @@ def write_and_view(
         port = player.serve("127.0.0.1", view_port)
     except RuntimeError as error:
         print(f"robotd replay: --view: cannot serve on 127.0.0.1:{view_port}: {error}", file=sys.stderr)
-        return EX_UNAVAILABLE
+        return os.EX_UNAVAILABLE
     print(
         f"serving the replay at ws://127.0.0.1:{port}: in Foxglove, Open connection > Foxglove WebSocket; Ctrl-C stops"
     )

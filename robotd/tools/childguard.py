@@ -20,7 +20,6 @@ import sys
 from collections.abc import Sequence
 
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
-EX_UNAVAILABLE = 69
 
 
 def die_with_parent(signum: int = signal.SIGTERM) -> bool:
@@ -39,7 +38,7 @@ def main(argv: Sequence[str]) -> int:
     die_with_parent()
     if os.getppid() != parent:  # the parent ended before the guard was set: nobody is left to stop us
         print(f"robotd: parent process {parent} has already exited; not starting {' '.join(argv[1:])}", file=sys.stderr)
-        return EX_UNAVAILABLE
+        return os.EX_UNAVAILABLE
     from robotd.cli import main as robotd_main  # noqa: PLC0415 - only after the guard is in place
 
     return robotd_main(list(argv[1:]))
