@@ -384,7 +384,10 @@ class EkfConfig:
         0.5, "The learnt delay of fixes without a measurement time stays within [0, this].", in_range(0.0, 5.0)
     )
     calibration_window_m: float = setting(
-        1.5, "Travel per calibration window (each window's odometry path is fitted to its fixes).", in_range(0.2, 100.0)
+        1.5,
+        "Travel per calibration window (each window's odometry path is fitted to its fixes; it closes once it also"
+        " holds 30 fixes).",
+        in_range(0.2, 100.0),
     )
     calibration_file: str = setting(
         "",

@@ -42,6 +42,10 @@ MIN_FIXES = 12
 # A window moves the calibration only when its fixes are worth this many independent ones (five per parameter of
 # the fit's nine: the lag-one correlation that discounts them is itself estimated from a few dozen residuals)
 MIN_INDEPENDENT_FIXES = 24
+# A window closes once it has travelled window_m and holds this many fixes: a slow beacon (4 Hz) puts fewer than
+# MIN_INDEPENDENT_FIXES on 1.5 m of travel, and a window that closed then would never move the calibration; a quarter
+# more than needed covers the fixes that the fit trims or that fall after the window's end
+FIXES_TO_CLOSE = MIN_INDEPENDENT_FIXES * 5 // 4
 PSI_SIGMA = 0.05  # rad per metre: heading drift from unequal traction, the prior of the window's psi
 SCALE_WALK = 0.01**2 / 60.0  # variance per second: a scale drifts about 1 % a minute at most
 LATENCY_WALK = 0.005**2 / 60.0  # s^2 per second: a delay drifts about 5 ms a minute at most
@@ -173,7 +177,7 @@ class Calibrator:
         if math.isnan(self._t0) or stated_t - self._delay(timed) < self._t0:
             return False
         self._fixes.append((stated_t, zx, zy, timed))
-        if self.travel < self.limits.window_m or len(self._fixes) < MIN_FIXES or not self._steps_t:
+        if self.travel < self.limits.window_m or len(self._fixes) < FIXES_TO_CLOSE or not self._steps_t:
             return False
         end = self._steps_t[-1]
         # the fixes measured on this window's path; those measured after its end start the next window

@@ -48,6 +48,9 @@ TIME_CHECK_SIGMA_S = 0.03  # how far a fix's stated measurement time may be off
 # a rotation fit's sigma is first order (sin s ~ s, 4 % off at 0.5 rad, 10 % at 0.8): beyond it, no guide (a short
 # track's fit at 0.8 was a wrong direction on the libRSF start, one at 0.3+ was once 5 sigma off)
 PROVISIONAL_MAX_SIGMA_RAD = 0.5
+# the fewest fixes a provisional heading is fitted from: three (six coordinates for a rotation and a translation);
+# waiting for five left a 4 Hz beacon's robot a second of driving without one
+PROVISIONAL_MIN_FIXES = 3
 # a twist's stamp marks the start, the middle or the end of the interval the sample averages (no log says which): the
 # three equally likely put the motion's true time within +-half a period of the stamp, variance period^2 / 6
 STAMP_CONVENTION_VAR = 1.0 / 6.0
@@ -470,7 +473,7 @@ class Estimator:
         fit), by the share of the motion that its sigma expects (robotd.estimation.history.Predictor)."""
         aligner = self._aligner
         provisional = NO_PROVISIONAL_HEADING
-        fit = aligner.fit_so_far(self._fix_gate.r)
+        fit = aligner.fit_so_far(self._fix_gate.r, PROVISIONAL_MIN_FIXES)
         if fit is not None:
             rotation, sigma, _, _, spread = fit
             # a short track's few residuals understate the noise (the fit absorbs it): not below the IPS noise in use

@@ -21,6 +21,9 @@ LN4 = 2.0 * math.log(2.0)  # median of a chi-square with 2 dof: |nu|^2 / sigma^2
 MAX_POINTS = 400  # a robot standing still must not grow a window forever
 MIN_REALIGN_RAD = 0.35  # smaller heading errors are the EKF's own business: it corrects them from fixes in motion
 MAX_FIT_SIGMA_RAD = 0.15  # a fit less certain than this decides nothing about a heading the filter already has
+# a fit trims its outliers by the median residual, which needs this many points; fewer fit untrimmed (the provisional
+# heading's first guide: the fixes have passed the gate, and its sigma says how little three points tell)
+MIN_TRIMMED_POINTS = 5
 FIT_SPACING = 0.25  # of the window's travel between two fits (at 40, 65, 90 and 100 %)
 
 
@@ -105,10 +108,12 @@ class HeadingAligner:
             for column in (self.zxs, self.zys, self.oxs, self.oys):
                 del column[: MAX_POINTS // 2]
 
-    def fit_so_far(self, r: float) -> tuple[float, float, float, float, FixSpread] | None:
+    def fit_so_far(
+        self, r: float, min_points: int = MIN_TRIMMED_POINTS
+    ) -> tuple[float, float, float, float, FixSpread] | None:
         """trimmed_rotation_fit of the window's track onto its fixes so far (outliers beyond 4 sigma of the IPS noise
-        variance r trimmed)."""
-        return trimmed_rotation_fit(self.oxs, self.oys, self.zxs, self.zys, 4.0 * math.sqrt(r))
+        variance r trimmed), from min_points fixes."""
+        return trimmed_rotation_fit(self.oxs, self.oys, self.zxs, self.zys, 4.0 * math.sqrt(r), min_points=min_points)
 
     def check(
         self, r: float, now_t: float, now: tuple[float, float, float], dist: float, *, whole: bool = False
@@ -200,20 +205,26 @@ def fit_rotation(oxs: list[float], oys: list[float], zxs: list[float], zys: list
 
 
 def trimmed_rotation_fit(
-    oxs: list[float], oys: list[float], zxs: list[float], zys: list[float], tolerance: float
+    oxs: list[float],
+    oys: list[float],
+    zxs: list[float],
+    zys: list[float],
+    tolerance: float,
+    *,
+    min_points: int = MIN_TRIMMED_POINTS,
 ) -> tuple[float, float, float, float, FixSpread] | None:
     """fit_rotation of the odometry track (oxs, oys) onto the fixes (zxs, zys) with outliers trimmed, and how certain
     its rotation is.
 
-    Returns (rotation, its standard deviation, tx, ty, the residuals' spread) or None when the track is too short or
-    too inconsistent.
+    Returns (rotation, its standard deviation, tx, ty, the residuals' spread) or None when fewer than min_points
+    remain or the track is too short or too inconsistent.
     """
     count = len(oxs)
     hypot = math.hypot
     fitted_x, fitted_y = oxs, oys
     for _ in range(3):
         n = len(oxs)
-        if n < 5:
+        if n < min_points:
             return None
         rotation, tx, ty = fit_rotation(oxs, oys, zxs, zys)
         fitted_x, fitted_y = oxs, oys
@@ -241,6 +252,8 @@ def trimmed_rotation_fit(
     # the fitted points' residuals (ex, ey of the last pass), normalised by their own power
     power = sum(e * e for e in residuals)
     rho = lag_one_correlation(np.column_stack((ex, ey)), power / (2.0 * (n - 1))) if power > 0.0 else 0.0
+    if n < MIN_TRIMMED_POINTS:
+        rho = max(rho, 0.0)  # a handful of residuals cannot show that they alternate: no credit for it
     # residuals that persist from fix to fix (a delay not yet learnt, multipath, odometry drift) are worth fewer
     # independent ones, (1 - rho) / (1 + rho) each: the rotation is that much less certain (the AR(1) discount)
     sigma = noise / math.sqrt(spread) * math.sqrt((1.0 + rho) / (1.0 - rho))

@@ -106,16 +106,17 @@ def test_scales_stay_within_their_bounds_whatever_the_fixes_say() -> None:
     assert np.isfinite(c.sigmas).all()
 
 
-def _circle_drive(fix_errors: np.ndarray, true_scale: float) -> Calibration:
+def _circle_drive(fix_errors: np.ndarray, true_scale: float, fix_rate_hz: int = 8) -> Calibration:
     """A robot driving circles at 0.3 m/s whose fixes (8 Hz) carry `fix_errors`; odometry reads 1 / true_scale."""
     calibrator = Calibrator(Calibration(), CalibrationLimits(), (0.0, 0.0))
     t, dt, radius = 0.0, 0.025, 1.0
-    for k in range(len(fix_errors) * 5):
+    every = 40 // fix_rate_hz  # odometry steps per fix
+    for k in range(len(fix_errors) * every):
         calibrator.on_step(t, t + dt, (0.3 / true_scale, 0.0, 0.3 / radius / true_scale))
         t += dt
-        if k % 5 == 4:
+        if k % every == every - 1:
             angle = 0.3 * t / radius
-            ex, ey = fix_errors[k // 5]
+            ex, ey = fix_errors[k // every]
             calibrator.on_fix(t, radius * np.sin(angle) + ex, radius * (1.0 - np.cos(angle)) + ey, timed=True)
     return calibrator.current
 
@@ -138,6 +139,15 @@ def test_fixes_sharing_a_slowly_varying_error_do_not_move_the_scales_but_are_dis
     # residuals alone put 0.1 m at 0.073 m
     assert correlated.fix_var == pytest.approx(0.1**2, rel=0.25)
     assert white.fix_var == pytest.approx(0.03**2, rel=0.15)
+
+
+def test_a_slow_beacon_calibrates_too() -> None:
+    # 4 Hz at 0.3 m/s puts 20 fixes on a 1.5 m window, fewer than a window needs to move the scales: the window
+    # travels on until it holds enough (it used to close and decide nothing, so a slow beacon never calibrated)
+    slow = _circle_drive(np.random.default_rng(3).normal(0.0, 0.03, (400, 2)), 1.08, fix_rate_hz=4)
+    assert slow.windows >= 5
+    assert slow.kx == pytest.approx(1.08, abs=0.02)
+    assert slow.sigmas[calibration.KX] < 0.02
 
 
 def test_a_heading_fit_judges_the_fixes_before_the_first_window_and_the_window_replaces_it() -> None:

@@ -52,3 +52,27 @@ def test_a_heading_not_known_at_all_takes_even_an_uncertain_fit_one_already_know
     assert HeadingCheck().evidence(fit, 0.0, math.pi**2, HeadingMode.UNKNOWN) is HeadingEvidence.WHOLE_WINDOW
     assert HeadingCheck().evidence(fit, 0.0, 0.01, HeadingMode.ALIGNED) is None
     assert fit.sigma == pytest.approx(0.3)
+
+
+def test_three_fixes_give_a_guide_whose_sigma_covers_its_error_once_the_noise_is_counted() -> None:
+    # the estimator's provisional heading fits from three fixes (a 4 Hz beacon's first second of driving) and counts
+    # the IPS noise in use when the few residuals understate it: so inflated, the sigma must cover the error
+    rng = np.random.default_rng(11)
+    ox, oy = [0.0, 0.1, 0.2], [0.0, 0.01, 0.03]
+    noise, rotation = 0.02, 1.0
+    c, s = math.cos(rotation), math.sin(rotation)
+    assert trimmed_rotation_fit(ox, oy, ox, oy, 0.2) is None  # five points by default: enough to trim by a median
+    z_scores = []
+    for _ in range(400):
+        e = rng.normal(0.0, noise, (3, 2))
+        zx = [x * c - y * s + ex for x, y, ex in zip(ox, oy, e[:, 0], strict=True)]
+        zy = [x * s + y * c + ey for x, y, ey in zip(ox, oy, e[:, 1], strict=True)]
+        fit = trimmed_rotation_fit(ox, oy, zx, zy, 0.2, min_points=3)
+        if fit is None:  # too uncertain to say anything (sigma beyond 0.5 rad)
+            continue
+        got, sigma, *_, spread = fit
+        assert spread.correlation >= 0.0  # three residuals earn no credit for alternating
+        inflated = sigma * math.sqrt(max(1.0, noise * noise / spread.variance))
+        z_scores.append(abs(math.remainder(got - rotation, math.tau)) / inflated)
+    assert len(z_scores) > 200
+    assert np.mean(np.asarray(z_scores) <= 3.0) >= 0.97
