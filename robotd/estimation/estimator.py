@@ -37,7 +37,16 @@ from robotd.estimation import ekf
 from robotd.estimation.calibration import TAU_K, Calibration, CalibrationLimits, Calibrator
 from robotd.estimation.fixgate import Diagnostics, FixGate
 from robotd.estimation.heading import HeadingAligner, HeadingCheck, RotationFit
-from robotd.estimation.history import NO_PROVISIONAL_HEADING, Anchor, FixRecord, History, Predictor, State
+from robotd.estimation.history import (
+    ACCEL_DENSITY,
+    ANGULAR_ACCEL_DENSITY,
+    NO_PROVISIONAL_HEADING,
+    Anchor,
+    FixRecord,
+    History,
+    Predictor,
+    State,
+)
 from robotd.estimation.modes import Modes, PositionMode, Verdict
 from robotd.estimation.process_noise import ProcessNoiseScale
 from robotd.estimation.track import OdometryTrack, Twist3
@@ -54,6 +63,8 @@ PROVISIONAL_MIN_FIXES = 3
 # a twist's stamp marks the start, the middle or the end of the interval the sample averages (no log says which): the
 # three equally likely put the motion's true time within +-half a period of the stamp, variance period^2 / 6
 STAMP_CONVENTION_VAR = 1.0 / 6.0
+# a twist stream whose next sample comes this many periods late has paused: the motion in the gap is a guess
+STREAM_PAUSE_PERIODS = 3.0
 TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
 
 
@@ -145,6 +156,8 @@ class Estimator:
             (
                 "wheels",
                 "twists",
+                "odometry_pauses",
+                "heading_lost",
                 "fixes",
                 "fixes_accepted",
                 "fixes_rejected",
@@ -197,10 +210,11 @@ class Estimator:
             self.counters["dropped_out_of_order"] += 1
             return
         self.counters["twists"] += 1
-        gap = t - self._last_twist_t
-        if 0.0 < gap < 1.0:  # a longer gap is a pause in the stream, not its period
-            period = self._twist_period_s
-            self._twist_period_s = gap if period == 0.0 else 0.9 * period + 0.1 * gap
+        gap, period = t - self._last_twist_t, self._twist_period_s
+        paused = period > 0.0 and gap > STREAM_PAUSE_PERIODS * period
+        if 0.0 < gap < 1.0 and not paused:  # a longer gap is a pause in the stream, not its period
+            self._twist_period_s = period = gap if period == 0.0 else 0.9 * period + 0.1 * gap
+            self._predictor.stale_after_s = STREAM_PAUSE_PERIODS * period
         self._last_twist_t = t
         track = self._track
         if not len(track):
@@ -209,7 +223,29 @@ class Estimator:
         held = (track.hx[-1], track.hy[-1], track.hw[-1])
         # each twist is a sample of the velocity at its time: the motion since the previous sample is their mean
         # (the trapezoid rule; holding the older sample would lag the motion by half a sample period)
-        self._step_to(t, (0.5 * (held[0] + vx), 0.5 * (held[1] + vy), 0.5 * (held[2] + wz)), (vx, vy, wz))
+        step_u = (0.5 * (held[0] + vx), 0.5 * (held[1] + vy), 0.5 * (held[2] + wz))
+        if not paused:
+            self._step_to(t, step_u, (vx, vy, wz))
+            return
+        # a pause in the stream: the twist held until the last period, the mean of the samples either side over it (a
+        # stream that publishes only changes is then exact). A robot at rest when the stream went quiet most likely
+        # stayed so (quiet because nothing changed); one that was moving leaves the motion in the gap a guess, as
+        # uncertain as a velocity pinned at both ends may wander (a dropped connection, a stalled recorder)
+        self.counters["odometry_pauses"] += 1
+        moving = held != (0.0, 0.0, 0.0)
+        bridge = (gap**3 - period**3) / 12.0 if moving else 0.0
+        turn_var = ANGULAR_ACCEL_DENSITY * bridge
+        self._step_to(t - period, held, held, (ACCEL_DENSITY * bridge, turn_var))
+        self._step_to(t, step_u, (vx, vy, wz))
+        if self.modes.heading_known and turn_var > self.config.unknown_heading_sigma_rad**2:
+            # the robot may have turned beyond what a linearised filter can carry: as after a recovery, the heading
+            # is unknown again and comes from the fixes (the position follows them meanwhile)
+            self.modes.lose_heading()
+            self.counters["heading_lost"] += 1
+            self._restart_window()
+            self._heading_check.suspect = None
+            self._predictor.provisional = NO_PROVISIONAL_HEADING
+            self._newest = None
 
     def on_fix_lost(self, t: float) -> None:  # noqa: ARG002 - the daemon's interface carries the time
         """A position packet flagged "coordinates unavailable": never fused, only counted."""
@@ -220,8 +256,9 @@ class Estimator:
         first = self._history.anchors[0]
         self._history.reset(first._replace(t=t))
 
-    def _step_to(self, t: float, step_u: Twist3, held: Twist3) -> None:
-        """A step ending at t with twist step_u, then `held` in force (the first input starts the track)."""
+    def _step_to(self, t: float, step_u: Twist3, held: Twist3, gap_var: tuple[float, float] = (0.0, 0.0)) -> None:
+        """A step ending at t with twist step_u, then `held` in force (the first input starts the track); gap_var:
+        the variance of the step's motion that step_u does not describe (robotd.estimation.track)."""
         track, history = self._track, self._history
         if not len(track):
             start = min(t, history.start) if history.start > -math.inf else t
@@ -231,9 +268,9 @@ class Estimator:
             if start < t:
                 track.append(t, (0.0, 0.0, 0.0), held)
         elif t > track.t[-1]:
-            if self._calibrator is not None:
+            if self._calibrator is not None and not gap_var[0]:  # a guessed step ends the window (a gap in its steps)
                 self._calibrator.on_step(track.t[-1], t, step_u)
-            track.append(t, step_u, held)
+            track.append(t, step_u, held, gap_var)
         else:
             track.hold(held)
         if len(track) - TRIM_STEPS > 2 * TRIM_STEPS:
@@ -557,7 +594,7 @@ class Estimator:
             t = max(when, self._wheels.last_t)
         if t > when and math.isfinite(when):
             # the same process model as a step: the covariance grows with the motion the extrapolation assumes
-            x, y, th, p, _ = self._predictor.move((x, y, th, p, sens), raw, t - when)
+            x, y, th, p, _ = self._history.move_within((x, y, th, p, sens), when, t, self._pending)
             when = t
         tau = self.time_sigma_s if self._twist_period_s > 0.0 else 0.0  # per output: wheel counts skip the call
         if tau > 0.0:  # an error tau in the estimate's time is an error u * tau in its pose, along the motion

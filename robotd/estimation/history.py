@@ -26,6 +26,19 @@ State = tuple[float, float, float, ekf.Cov, ekf.Sens]
 """x, y, theta, P (upper triangle) and the pose's sensitivity to the odometry scales (ekf.Sens)."""
 UNKNOWN_HEADING_CORRELATION_S = 0.1  # how long a velocity error from an unknown heading persists: a fix interval
 NO_PROVISIONAL_HEADING = (0.0, 0.0)  # (shrink, turn): no motion is expected in any direction
+# How fast a robot's velocity can drift from the last one sampled, as white acceleration noise: m^2/s^3 (about 0.7
+# m/s^2 sustained for a second: a small robot's speed changes by that much) and rad^2/s^3 (1.4 rad/s^2). A twist
+# stream that pauses for g leaves the motion between its samples known to within ACCEL_DENSITY g^3 / 12 per axis (the
+# integral of a velocity pinned at both ends); one not yet resumed, ACCEL_DENSITY age^3 / 3 (pinned at one end)
+ACCEL_DENSITY = 0.5
+ANGULAR_ACCEL_DENSITY = 2.0
+
+
+def blurred(state: State, var_xy: float, var_th: float) -> State:
+    """The state with var_xy added to its position's variance per axis and var_th to its heading's."""
+    x, y, theta, p, sens = state
+    xx, xy, xt, yy, yt, tt = p
+    return x, y, theta, (xx + var_xy, xy, xt, yy + var_xy, yt, tt + var_th), sens
 
 
 class FixRecord(NamedTuple):
@@ -87,6 +100,9 @@ class Predictor:
         self.scale_var: Twist3 = ekf.NO_SCALE_VAR  # their relative variances (see ekf.predict_considering)
         # heading unknown, position placed: (shrink, turn) of the guessed motion, from the fixes so far (see above)
         self.provisional = NO_PROVISIONAL_HEADING
+        # how long after the newest step the held twist is no longer the stream's own (a twist stream's next sample
+        # is late by then: robotd.estimation.estimator); infinite for wheel counts, whose next sample measures the gap
+        self.stale_after_s = math.inf
 
     def scale_noise(self, factor: float) -> None:
         """Use the configured odometry noise variances times factor (the paper's per-step terms unchanged)."""
@@ -174,12 +190,21 @@ class History:
     def carry(self, state: State, at: float, b: int, j: int) -> State:
         """The state at `at` (within step b, or at its start) carried to the end of step j >= b."""
         track, move = self.track, self.predictor.move
-        vx, vy, wz, steps_t = track.vx, track.vy, track.wz, track.t
+        vx, vy, wz, steps_t, gap_var = track.vx, track.vy, track.wz, track.t, track.gap_var
         if steps_t[b] > at:
             state = move(state, (vx[b], vy[b], wz[b]), steps_t[b] - at)
+            if gap_var[b]:
+                state = self._blurred(state, b, (steps_t[b] - at) / (steps_t[b] - steps_t[b - 1]))
         for k in range(b + 1, j + 1):
             state = move(state, (vx[k], vy[k], wz[k]), steps_t[k] - steps_t[k - 1])
+            if gap_var[k]:
+                state = self._blurred(state, k, 1.0)
         return state
+
+    def _blurred(self, state: State, k: int, share: float) -> State:
+        """The state with `share` of step k's undescribed motion's variance added (a gap in a twist stream)."""
+        track = self.track
+        return blurred(state, share * track.gap_var[k], share * track.gap_var_th[k])
 
     def move_within(self, state: State, at: float, t: float, pending: Callable[[], Twist3]) -> State:
         """The state at `at` moved on to t >= at, within the step that contains t (pending() beyond the newest)."""
@@ -187,8 +212,21 @@ class History:
             return state
         track = self.track
         k = bisect.bisect_left(track.t, t)
-        u = (track.vx[k], track.vy[k], track.wz[k]) if k < len(track) else pending()
-        return self.predictor.move(state, u, t - at)
+        if k < len(track):
+            moved = self.predictor.move(state, (track.vx[k], track.vy[k], track.wz[k]), t - at)
+            if track.gap_var[k] and k > 0:
+                moved = self._blurred(moved, k, (t - at) / (track.t[k] - track.t[k - 1]))
+            return moved
+        u = pending()
+        moved = self.predictor.move(state, u, t - at)
+        stale_after = self.predictor.stale_after_s
+        if track.t and t - track.t[-1] > stale_after and u != (0.0, 0.0, 0.0):
+            # past the stream's next sample, the held twist is a guess that ages: add what its age adds since `at`
+            # (a robot at rest when the stream went quiet most likely stays so: a stream may publish only changes)
+            age0, age1 = max(at - track.t[-1] - stale_after, 0.0), t - track.t[-1] - stale_after
+            grown = (age1**3 - age0**3) / 3.0
+            moved = blurred(moved, ACCEL_DENSITY * grown, ANGULAR_ACCEL_DENSITY * grown)
+        return moved
 
     def place(
         self, k: int, anchor: Anchor, remake: Callable[[State, Anchor], Anchor], pending: Callable[[], Twist3]
@@ -224,4 +262,4 @@ class History:
         return max(bisect.bisect_right(steps_t, times[0]) - 1, 0)
 
 
-__all__ = ["Anchor", "FixRecord", "History", "Predictor", "State"]
+__all__ = ["ACCEL_DENSITY", "ANGULAR_ACCEL_DENSITY", "Anchor", "FixRecord", "History", "Predictor", "State", "blurred"]

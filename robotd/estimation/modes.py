@@ -17,12 +17,14 @@ transitions that take the window's heading:
     SUSPECT   --AGREES-->           CONFIRMED     SUSPECT   --DISAGREES-->       SUSPECT
     SUSPECT   --DISAGREES_AGAIN*--> CONFIRMED
     any       --RECOVERED (a fix's verdict)-->    UNKNOWN
+    any       --LOST (odometry paused)-->         UNKNOWN
 
-  UNKNOWN at start when the configured initial heading is uncertain, and after every recovery (a robot carried off
-  may have been turned): the position then follows the fixes, and the first trustworthy fit of a whole window gives
-  the heading. ALIGNED: known, but no window has agreed with it yet; a window that disagrees is taken at once.
-  CONFIRMED: a window agreed. SUSPECT: after that, one window disagreed (an echo can bend one window); the next
-  decides, and is taken only if it disagrees the same way.
+  UNKNOWN at start when the configured initial heading is uncertain, after every recovery (a robot carried off may
+  have been turned), and after a pause in the odometry long enough to have turned the robot by more than an unknown
+  heading's sigma (robotd.estimation.estimator): the position then follows the fixes, and the first trustworthy fit of
+  a whole window gives the heading. ALIGNED: known, but no window has agreed with it yet; a window that disagrees is
+  taken at once. CONFIRMED: a window agreed. SUSPECT: after that, one window disagreed (an echo can bend one window);
+  the next decides, and is taken only if it disagrees the same way.
 """
 
 from __future__ import annotations
@@ -126,6 +128,10 @@ class Modes:
         if verdict is Verdict.RECOVERED:
             self.heading = HeadingMode.UNKNOWN
         return before
+
+    def lose_heading(self) -> None:
+        """The odometry paused for long enough that the heading may be anything: it is unknown again."""
+        self.heading = HeadingMode.UNKNOWN
 
     def on_evidence(self, evidence: HeadingEvidence) -> bool:
         """Take a window's evidence about the heading; returns whether the window's heading is to be taken."""

@@ -37,6 +37,10 @@ class OdometryTrack:
         self.oy: list[float] = []
         self.oth: list[float] = []  # unwrapped
         self.dist: list[float] = []  # distance travelled since the track began
+        # the variance of motion the step's twist does not describe (a gap in a twist stream: see
+        # robotd.estimation.estimator), per axis of position and of heading, over the whole step
+        self.gap_var: list[float] = []
+        self.gap_var_th: list[float] = []
 
     def __len__(self) -> int:
         return len(self.t)
@@ -46,7 +50,7 @@ class OdometryTrack:
         for column in self._columns():
             column.clear()
         self.t.append(t)
-        for column in (self.vx, self.vy, self.wz, self.ox, self.oy, self.oth, self.dist):
+        for column in (self.vx, self.vy, self.wz, self.ox, self.oy, self.oth, self.dist, self.gap_var, self.gap_var_th):
             column.append(0.0)
         self.hold(held, new=True)
 
@@ -59,8 +63,9 @@ class OdometryTrack:
         else:
             self.hx[-1], self.hy[-1], self.hw[-1] = held
 
-    def append(self, t: float, u: Twist3, held: Twist3) -> None:
-        """Add one step ending at t (after the newest) with twist u, and `held` in force after it."""
+    def append(self, t: float, u: Twist3, held: Twist3, gap_var: tuple[float, float] = (0.0, 0.0)) -> None:
+        """Add one step ending at t (after the newest) with twist u, and `held` in force after it; gap_var: the
+        variance (position per axis, heading) of the motion over the step that u does not describe."""
         vx, vy, wz = u
         dt = t - self.t[-1]
         heading = self.oth[-1]
@@ -74,6 +79,8 @@ class OdometryTrack:
         self.oy.append(self.oy[-1] + dy)
         self.oth.append(heading + wz * dt)
         self.dist.append(self.dist[-1] + math.hypot(vx, vy) * dt)
+        self.gap_var.append(gap_var[0])
+        self.gap_var_th.append(gap_var[1])
 
     def drop_before(self, index: int) -> None:
         """Forget the steps before list index `index` (no state will be carried from them again)."""
@@ -114,7 +121,21 @@ class OdometryTrack:
         return self.t[-1], (self.ox[-1], self.oy[-1], self.oth[-1]), self.dist[-1]
 
     def _columns(self) -> tuple[list[float], ...]:
-        return (self.t, self.vx, self.vy, self.wz, self.hx, self.hy, self.hw, self.ox, self.oy, self.oth, self.dist)
+        return (
+            self.t,
+            self.vx,
+            self.vy,
+            self.wz,
+            self.hx,
+            self.hy,
+            self.hw,
+            self.ox,
+            self.oy,
+            self.oth,
+            self.dist,
+            self.gap_var,
+            self.gap_var_th,
+        )
 
 
 __all__ = ["OdometryTrack", "Twist3"]

@@ -10,7 +10,8 @@ import pytest
 
 from robotd import kinematics
 from robotd.config.model import EkfConfig, paper_preset
-from robotd.estimation.estimator import Estimator, PositionMode, Verdict
+from robotd.estimation.estimator import STREAM_PAUSE_PERIODS, Estimator, PositionMode, Verdict
+from robotd.estimation.history import ACCEL_DENSITY
 
 GEOMETRY = kinematics.Geometry()
 CPR = 6800
@@ -291,6 +292,23 @@ def test_with_the_heading_unknown_odometry_moves_a_placed_position_along_no_gues
     assert b.cov[1] == 0.0
     assert b.cov[2] == 0.0
     assert b.theta == pytest.approx(a.theta)
+
+
+def test_a_twist_stream_that_pauses_leaves_the_motion_uncertain_and_a_long_pause_the_heading_unknown() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    _drive(est, 5.0, (0.3, 0.0, 0.0))  # twists at 100 Hz, fixes at 8 Hz
+    at_last = est.pose(5.0).cov[0]
+    assert est.pose(5.02).cov[0] - at_last < 1e-4  # the next sample is merely due
+    # two seconds without a sample: the held twist is a guess whose error grows like an integrated random walk
+    assert est.pose(7.0).cov[0] - at_last > 0.9 * ACCEL_DENSITY * (2.0 - STREAM_PAUSE_PERIODS * 0.01) ** 3 / 3.0
+    est.on_twist(5.3, 0.3, 0.0, 0.0)  # a short pause: the gap's motion is a guess, the heading still known
+    assert est.counters["odometry_pauses"] == 1
+    assert est.modes.heading_known
+    _drive(est, 6.0, (0.3, 0.0, 0.0), start=5.3)
+    est.on_twist(8.0, 0.3, 0.0, 0.0)  # two seconds: the robot could have turned by more than a radian
+    assert est.counters["odometry_pauses"] == 2
+    assert est.counters["heading_lost"] == 1
+    assert not est.modes.heading_known
 
 
 def test_a_robot_at_rest_does_not_grow_uncertain() -> None:
