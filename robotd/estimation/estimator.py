@@ -145,6 +145,7 @@ class Estimator:
         self._history = History(self._track, self._predictor, first, c.history_s, keep_past=c.latency_compensation)
         self._last_accept_t = -math.inf
         self._twist_period_s = 0.0  # the twist samples' period (a running mean of their intervals)
+        self._wheel_interval_s = 0.0  # the same for wheel samples
         self._last_twist_t = -math.inf
         self._fixes_timed = False  # whether the newest fix stated its measurement time
         self._wheels = WheelFeed(TickKinematics(geometry, counts_per_rev), c.predict_period_s)
@@ -197,9 +198,24 @@ class Estimator:
             self.counters["dropped_out_of_order" if math.isfinite(t) else "dropped_non_finite"] += 1
             return
         self.counters["wheels"] += 1
+        before_t, held = wheels.last_t, self._pending()
+        gap, interval = t - before_t, self._wheel_interval_s
+        paused = interval > 0.0 and gap > STREAM_PAUSE_PERIODS * max(interval, wheels.period)
+        if 0.0 < gap < 1.0 and not paused:  # as for twists: a longer gap is a pause, not the stream's interval
+            self._wheel_interval_s = interval = gap if interval == 0.0 else 0.9 * interval + 0.1 * gap
+            self._predictor.stale_after_s = STREAM_PAUSE_PERIODS * max(interval, wheels.period)
         step = wheels.sample(t, ticks)
-        if step is not None:
+        if step is None:
+            return
+        if not paused:
             self._step_to(step[0], step[1], step[1])
+            return
+        # a pause: the ticks measure the gap's displacement and turn, but not the path between (one arc is a guess)
+        self.counters["odometry_pauses"] += 1
+        moving = held != (0.0, 0.0, 0.0) or step[1] != (0.0, 0.0, 0.0)
+        bridge = (gap**3 - interval**3) / 12.0 if moving else 0.0
+        self._step_to(step[0], step[1], step[1], (ACCEL_DENSITY * bridge, 0.0))
+        self._after_pause(before_t, moving=moving)
 
     def on_twist(self, t: float, vx: float, vy: float, wz: float) -> None:
         """A measured body twist (m/s, rad/s) at time t, held until the next one."""
@@ -237,15 +253,22 @@ class Estimator:
         turn_var = ANGULAR_ACCEL_DENSITY * bridge
         self._step_to(t - period, held, held, (ACCEL_DENSITY * bridge, turn_var))
         self._step_to(t, step_u, (vx, vy, wz))
+        self._after_pause(t - gap, moving=moving)
         if self.modes.heading_known and turn_var > self.config.unknown_heading_sigma_rad**2:
             # the robot may have turned beyond what a linearised filter can carry: as after a recovery, the heading
             # is unknown again and comes from the fixes (the position follows them meanwhile)
             self.modes.lose_heading()
             self.counters["heading_lost"] += 1
-            self._restart_window()
-            self._heading_check.suspect = None
             self._predictor.provisional = NO_PROVISIONAL_HEADING
             self._newest = None
+
+    def _after_pause(self, start: float, *, moving: bool) -> None:
+        """After a pause in the odometry that began at `start`: the anchors since made again on the steps now known,
+        and, if the robot was moving, the heading window started afresh (its track through the gap is a guess)."""
+        self._remake_after(start)
+        if moving:
+            self._restart_window()
+            self._heading_check.suspect = None
 
     def on_fix_lost(self, t: float) -> None:  # noqa: ARG002 - the daemon's interface carries the time
         """A position packet flagged "coordinates unavailable": never fused, only counted."""
@@ -337,7 +360,9 @@ class Estimator:
         # correlated fixes are fused for what they are worth: each one's variance grows by the AR(1) discount
         r /= self._calibration.fix_information
         inn = ekf.innovation(px, py, pth, pp, x, y, r, self._offset[0], self._offset[1])
-        verdict = gate.judge(t_meas, inn, r)
+        # a prediction across a pause in the odometry is a worst case, not a variance the innovation can be set
+        # against: the noise learnt from it would go to its floor
+        verdict = gate.judge(t_meas, inn, r, learn=not self._paused_at(t_meas))
         before = self.modes.on_verdict(verdict)
         aligner = self._aligner
         if aligner.enabled and self.modes.placed:
@@ -446,6 +471,28 @@ class Estimator:
     def calibration(self) -> Calibration:
         """The odometry scales and fix delays in use, with their uncertainty."""
         return self._calibration
+
+    def _paused_at(self, t: float) -> bool:
+        """Whether the odometry at t is a guess: within a pause's step, or past the newest step by more than the
+        stream's interval allows."""
+        track = self._track
+        if not track.t:
+            return False
+        if t > track.t[-1]:
+            return t - track.t[-1] > self._predictor.stale_after_s
+        k = bisect.bisect_left(track.t, t)
+        return bool(track.gap_var[k]) or (k + 1 < len(track) and bool(track.gap_var[k + 1]))
+
+    def _remake_after(self, t: float) -> None:
+        """Make the anchors after t again on the steps now known (fixes fused during a pause in the odometry met a
+        state extrapolated with the twist held before it)."""
+        history = self._history
+        k = bisect.bisect_right(history.times, t) - 1
+        if 0 <= k < len(history.anchors) - 1:
+            first = history.anchors[k + 1]
+            state = history.state_at(history.anchors[k], first.t, self._pending)
+            history.place(k, self._remake(state, first), self._remake, self._pending)
+            self._newest = None
 
     def _remake(self, state: State, old: Anchor) -> Anchor:
         """An anchor made again at its time from the state there: its fix fused again, its seed moved again."""

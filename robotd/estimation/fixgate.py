@@ -76,8 +76,9 @@ class FixGate:
         self.innovations: deque[float] = deque(maxlen=31)  # |nu|^2 - (trace(S) - 2 r), for the noise estimate
         self._ordered: list[float] = []  # the same, sorted
 
-    def judge(self, t_meas: float, inn: ekf.Innovation, r: float) -> Verdict:
-        """Seed, accept, gate or recover: the fix's verdict (and the counters and noise estimate that follow)."""
+    def judge(self, t_meas: float, inn: ekf.Innovation, r: float, *, learn: bool = True) -> Verdict:
+        """Seed, accept, gate or recover: the fix's verdict (and the counters and noise estimate that follow; the noise
+        learns from the fix only when `learn`)."""
         config, counters = self.config, self.counters
         if not self.modes.placed and config.seed_fixes:
             self.candidates.append((t_meas, inn.nu_x, inn.nu_y))
@@ -85,7 +86,7 @@ class FixGate:
                 return Verdict.SEEDING
             counters["fixes_seeded"] += 1
             return Verdict.SEEDED
-        if config.adaptive_ips_noise and self._samples_noise(inn, r):
+        if learn and config.adaptive_ips_noise and self._samples_noise(inn, r):
             self._learn_noise(inn, r)
         rejection = Verdict.GATED
         if not config.gating or inn.nis <= self.gate:
