@@ -40,6 +40,8 @@ from robotd.estimation.heading import HeadingAligner, HeadingCheck, RotationFit
 from robotd.estimation.history import (
     ACCEL_DENSITY,
     ANGULAR_ACCEL_DENSITY,
+    NO_ODOMETRY_SPEED_VAR,
+    NO_ODOMETRY_TURN_VAR,
     NO_PROVISIONAL_HEADING,
     Anchor,
     FixRecord,
@@ -254,9 +256,13 @@ class Estimator:
         self._step_to(t - period, held, held, (ACCEL_DENSITY * bridge, turn_var))
         self._step_to(t, step_u, (vx, vy, wz))
         self._after_pause(t - gap, moving=moving)
+        self._maybe_lose_heading(turn_var)
+
+    def _maybe_lose_heading(self, turn_var: float) -> None:
+        """After odometry that does not say how far the robot turned (turn_var rad^2): beyond what a linearised filter
+        can carry, the heading is unknown again (as after a recovery) and comes from the fixes, which the position
+        follows meanwhile."""
         if self.modes.heading_known and turn_var > self.config.unknown_heading_sigma_rad**2:
-            # the robot may have turned beyond what a linearised filter can carry: as after a recovery, the heading
-            # is unknown again and comes from the fixes (the position follows them meanwhile)
             self.modes.lose_heading()
             self.counters["heading_lost"] += 1
             self._predictor.provisional = NO_PROVISIONAL_HEADING
@@ -289,7 +295,11 @@ class Estimator:
             if history.start == -math.inf:
                 self._set_clock(start)
             if start < t:
-                track.append(t, (0.0, 0.0, 0.0), held)
+                # fixes came before any odometry: how the robot moved until now is not known (robotd.estimation.history)
+                unknown = (NO_ODOMETRY_SPEED_VAR * (t - start), NO_ODOMETRY_TURN_VAR * (t - start))
+                track.append(t, (0.0, 0.0, 0.0), held, unknown)
+                self._after_pause(start, moving=True)
+                self._maybe_lose_heading(unknown[1])
         elif t > track.t[-1]:
             if self._calibrator is not None and not gap_var[0]:  # a guessed step ends the window (a gap in its steps)
                 self._calibrator.on_step(track.t[-1], t, step_u)
@@ -477,7 +487,7 @@ class Estimator:
         stream's interval allows."""
         track = self._track
         if not track.t:
-            return False
+            return True  # no odometry yet
         if t > track.t[-1]:
             return t - track.t[-1] > self._predictor.stale_after_s
         k = bisect.bisect_left(track.t, t)

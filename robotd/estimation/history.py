@@ -32,6 +32,10 @@ NO_PROVISIONAL_HEADING = (0.0, 0.0)  # (shrink, turn): no motion is expected in 
 # integral of a velocity pinned at both ends); one not yet resumed, ACCEL_DENSITY age^3 / 3 (pinned at one end)
 ACCEL_DENSITY = 0.5
 ANGULAR_ACCEL_DENSITY = 2.0
+# Before any odometry (fixes came first) the robot may be moving at a walking pace or turning, unseen: as a velocity
+# of that size (0.5 m/s, 1 rad/s per axis) persisting for a fix interval, white noise of density variance x 0.1 s
+NO_ODOMETRY_SPEED_VAR = 0.5**2 * UNKNOWN_HEADING_CORRELATION_S  # m^2/s per axis
+NO_ODOMETRY_TURN_VAR = 1.0**2 * UNKNOWN_HEADING_CORRELATION_S  # rad^2/s
 
 
 def blurred(state: State, var_xy: float, var_th: float) -> State:
@@ -211,6 +215,9 @@ class History:
         if t <= at:
             return state
         track = self.track
+        if not track.t:  # no odometry yet: the motion since `at` is not known
+            moved = self.predictor.move(state, pending(), t - at)
+            return blurred(moved, NO_ODOMETRY_SPEED_VAR * (t - at), NO_ODOMETRY_TURN_VAR * (t - at))
         k = bisect.bisect_left(track.t, t)
         if k < len(track):
             moved = self.predictor.move(state, (track.vx[k], track.vy[k], track.wz[k]), t - at)
@@ -262,4 +269,15 @@ class History:
         return max(bisect.bisect_right(steps_t, times[0]) - 1, 0)
 
 
-__all__ = ["ACCEL_DENSITY", "ANGULAR_ACCEL_DENSITY", "Anchor", "FixRecord", "History", "Predictor", "State", "blurred"]
+__all__ = [
+    "ACCEL_DENSITY",
+    "ANGULAR_ACCEL_DENSITY",
+    "NO_ODOMETRY_SPEED_VAR",
+    "NO_ODOMETRY_TURN_VAR",
+    "Anchor",
+    "FixRecord",
+    "History",
+    "Predictor",
+    "State",
+    "blurred",
+]
