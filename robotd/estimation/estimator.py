@@ -65,8 +65,10 @@ PROVISIONAL_MIN_FIXES = 3
 # a twist's stamp marks the start, the middle or the end of the interval the sample averages (no log says which): the
 # three equally likely put the motion's true time within +-half a period of the stamp, variance period^2 / 6
 STAMP_CONVENTION_VAR = 1.0 / 6.0
-# a twist stream whose next sample comes this many periods late has paused: the motion in the gap is a guess
+# an odometry stream whose next sample comes this many periods late, and at least PAUSE_MIN_S, has paused: the motion in
+# the gap is a guess (a loop that stalls a few tens of milliseconds on a busy Pi is not a pause)
 STREAM_PAUSE_PERIODS = 3.0
+PAUSE_MIN_S = 0.25
 TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
 
 
@@ -202,22 +204,23 @@ class Estimator:
         self.counters["wheels"] += 1
         before_t, held = wheels.last_t, self._pending()
         gap, interval = t - before_t, self._wheel_interval_s
-        paused = interval > 0.0 and gap > STREAM_PAUSE_PERIODS * max(interval, wheels.period)
+        paused = interval > 0.0 and gap > _pause_after(max(interval, wheels.period))
         if 0.0 < gap < 1.0 and not paused:  # as for twists: a longer gap is a pause, not the stream's interval
             self._wheel_interval_s = interval = gap if interval == 0.0 else 0.9 * interval + 0.1 * gap
-            self._predictor.stale_after_s = STREAM_PAUSE_PERIODS * max(interval, wheels.period)
+            self._predictor.stale_after_s = _pause_after(max(interval, wheels.period))
         step = wheels.sample(t, ticks)
         if step is None:
             return
-        if not paused:
+        # a source at rest publishes only on an edge or a keep-alive: a quiet robot at rest is no news (as for twists)
+        if not paused or held == (0.0, 0.0, 0.0):
             self._step_to(step[0], step[1], step[1])
             return
-        # a pause: the ticks measure the gap's displacement and turn, but not the path between (one arc is a guess)
+        # a pause while moving: the ticks measure the gap's displacement and turn, but not the path between (one arc
+        # is a guess)
         self.counters["odometry_pauses"] += 1
-        moving = held != (0.0, 0.0, 0.0) or step[1] != (0.0, 0.0, 0.0)
-        bridge = (gap**3 - interval**3) / 12.0 if moving else 0.0
+        bridge = (gap**3 - interval**3) / 12.0
         self._step_to(step[0], step[1], step[1], (ACCEL_DENSITY * bridge, 0.0))
-        self._after_pause(before_t, moving=moving)
+        self._after_pause(before_t)
 
     def on_twist(self, t: float, vx: float, vy: float, wz: float) -> None:
         """A measured body twist (m/s, rad/s) at time t, held until the next one."""
@@ -229,10 +232,10 @@ class Estimator:
             return
         self.counters["twists"] += 1
         gap, period = t - self._last_twist_t, self._twist_period_s
-        paused = period > 0.0 and gap > STREAM_PAUSE_PERIODS * period
+        paused = period > 0.0 and gap > _pause_after(period)
         if 0.0 < gap < 1.0 and not paused:  # a longer gap is a pause in the stream, not its period
             self._twist_period_s = period = gap if period == 0.0 else 0.9 * period + 0.1 * gap
-            self._predictor.stale_after_s = STREAM_PAUSE_PERIODS * period
+            self._predictor.stale_after_s = _pause_after(period)
         self._last_twist_t = t
         track = self._track
         if not len(track):
@@ -249,13 +252,16 @@ class Estimator:
         # stream that publishes only changes is then exact). A robot at rest when the stream went quiet most likely
         # stayed so (quiet because nothing changed); one that was moving leaves the motion in the gap a guess, as
         # uncertain as a velocity pinned at both ends may wander (a dropped connection, a stalled recorder)
+        if held == (0.0, 0.0, 0.0):
+            self._step_to(t - period, held, held)
+            self._step_to(t, step_u, (vx, vy, wz))
+            return
         self.counters["odometry_pauses"] += 1
-        moving = held != (0.0, 0.0, 0.0)
-        bridge = (gap**3 - period**3) / 12.0 if moving else 0.0
+        bridge = (gap**3 - period**3) / 12.0
         turn_var = ANGULAR_ACCEL_DENSITY * bridge
         self._step_to(t - period, held, held, (ACCEL_DENSITY * bridge, turn_var))
         self._step_to(t, step_u, (vx, vy, wz))
-        self._after_pause(t - gap, moving=moving)
+        self._after_pause(t - gap)
         self._maybe_lose_heading(turn_var)
 
     def _maybe_lose_heading(self, turn_var: float) -> None:
@@ -268,13 +274,12 @@ class Estimator:
             self._predictor.provisional = NO_PROVISIONAL_HEADING
             self._newest = None
 
-    def _after_pause(self, start: float, *, moving: bool) -> None:
-        """After a pause in the odometry that began at `start`: the anchors since made again on the steps now known,
-        and, if the robot was moving, the heading window started afresh (its track through the gap is a guess)."""
+    def _after_pause(self, start: float) -> None:
+        """After a pause in the odometry that began at `start` while the robot moved: the anchors since made again on
+        the steps now known, and the heading window started afresh (its track through the gap is a guess)."""
         self._remake_after(start)
-        if moving:
-            self._restart_window()
-            self._heading_check.suspect = None
+        self._restart_window()
+        self._heading_check.suspect = None
 
     def on_fix_lost(self, t: float) -> None:  # noqa: ARG002 - the daemon's interface carries the time
         """A position packet flagged "coordinates unavailable": never fused, only counted."""
@@ -298,7 +303,7 @@ class Estimator:
                 # fixes came before any odometry: how the robot moved until now is not known (robotd.estimation.history)
                 unknown = (NO_ODOMETRY_SPEED_VAR * (t - start), NO_ODOMETRY_TURN_VAR * (t - start))
                 track.append(t, (0.0, 0.0, 0.0), held, unknown)
-                self._after_pause(start, moving=True)
+                self._after_pause(start)
                 self._maybe_lose_heading(unknown[1])
         elif t > track.t[-1]:
             if self._calibrator is not None and not gap_var[0]:  # a guessed step ends the window (a gap in its steps)
@@ -664,6 +669,11 @@ class Estimator:
         if shared > 0.0:
             p = (p[0] + shared, p[1], p[2], p[3] + shared, p[4], p[5])
         return when, x, y, th, u, p
+
+
+def _pause_after(interval: float) -> float:
+    """How late a stream of samples `interval` apart may be before it has paused."""
+    return max(STREAM_PAUSE_PERIODS * interval, PAUSE_MIN_S)
 
 
 def _seeded(t: float, state: State, fix: FixRecord, shift: tuple[float, float]) -> Anchor:
