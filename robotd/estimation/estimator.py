@@ -150,6 +150,9 @@ class Estimator:
         self._last_accept_t = -math.inf
         self._twist_period_s = 0.0  # the twist samples' period (a running mean of their intervals)
         self._wheel_interval_s = 0.0  # the same for wheel samples
+        # how late each stream's next sample may be before the stream has paused (infinite until its interval is known)
+        self._twist_pause_after_s = math.inf
+        self._wheel_pause_after_s = math.inf
         self._last_twist_t = -math.inf
         self._fixes_timed = False  # whether the newest fix stated its measurement time
         self._wheels = WheelFeed(TickKinematics(geometry, counts_per_rev), c.predict_period_s)
@@ -202,23 +205,26 @@ class Estimator:
             self.counters["dropped_out_of_order" if math.isfinite(t) else "dropped_non_finite"] += 1
             return
         self.counters["wheels"] += 1
-        before_t, held = wheels.last_t, self._pending()
-        gap, interval = t - before_t, self._wheel_interval_s
-        paused = interval > 0.0 and gap > _pause_after(max(interval, wheels.period))
+        before_t = wheels.last_t
+        gap = t - before_t
+        paused = gap > self._wheel_pause_after_s
+        held = self._pending() if paused else None  # the twist in force when the stream went quiet
         if 0.0 < gap < 1.0 and not paused:  # as for twists: a longer gap is a pause, not the stream's interval
+            interval = self._wheel_interval_s
             self._wheel_interval_s = interval = gap if interval == 0.0 else 0.9 * interval + 0.1 * gap
-            self._predictor.stale_after_s = _pause_after(max(interval, wheels.period))
+            self._wheel_pause_after_s = max(STREAM_PAUSE_PERIODS * max(interval, wheels.period), PAUSE_MIN_S)
+            self._predictor.stale_after_s = self._wheel_pause_after_s
         step = wheels.sample(t, ticks)
         if step is None:
             return
         # a source at rest publishes only on an edge or a keep-alive: a quiet robot at rest is no news (as for twists)
-        if not paused or held == (0.0, 0.0, 0.0):
+        if held is None or held == (0.0, 0.0, 0.0):
             self._step_to(step[0], step[1], step[1])
             return
         # a pause while moving: the ticks measure the gap's displacement and turn, but not the path between (one arc
         # is a guess)
         self.counters["odometry_pauses"] += 1
-        bridge = (gap**3 - interval**3) / 12.0
+        bridge = (gap**3 - self._wheel_interval_s**3) / 12.0
         self._step_to(step[0], step[1], step[1], (ACCEL_DENSITY * bridge, 0.0))
         self._after_pause(before_t)
 
@@ -232,10 +238,11 @@ class Estimator:
             return
         self.counters["twists"] += 1
         gap, period = t - self._last_twist_t, self._twist_period_s
-        paused = period > 0.0 and gap > _pause_after(period)
+        paused = gap > self._twist_pause_after_s
         if 0.0 < gap < 1.0 and not paused:  # a longer gap is a pause in the stream, not its period
             self._twist_period_s = period = gap if period == 0.0 else 0.9 * period + 0.1 * gap
-            self._predictor.stale_after_s = _pause_after(period)
+            self._twist_pause_after_s = max(STREAM_PAUSE_PERIODS * period, PAUSE_MIN_S)
+            self._predictor.stale_after_s = self._twist_pause_after_s
         self._last_twist_t = t
         track = self._track
         if not len(track):
@@ -656,7 +663,11 @@ class Estimator:
             t = max(when, self._wheels.last_t)
         if t > when and math.isfinite(when):
             # the same process model as a step: the covariance grows with the motion the extrapolation assumes
-            x, y, th, p, _ = self._history.move_within((x, y, th, p, sens), when, t, self._pending)
+            state = (x, y, th, p, sens)
+            if self._track.t:
+                x, y, th, p, _ = self._history.beyond_newest(state, when, t, raw)
+            else:
+                x, y, th, p, _ = self._history.move_within(state, when, t, self._pending)
             when = t
         tau = self.time_sigma_s if self._twist_period_s > 0.0 else 0.0  # per output: wheel counts skip the call
         if tau > 0.0:  # an error tau in the estimate's time is an error u * tau in its pose, along the motion
@@ -669,11 +680,6 @@ class Estimator:
         if shared > 0.0:
             p = (p[0] + shared, p[1], p[2], p[3] + shared, p[4], p[5])
         return when, x, y, th, u, p
-
-
-def _pause_after(interval: float) -> float:
-    """How late a stream of samples `interval` apart may be before it has paused."""
-    return max(STREAM_PAUSE_PERIODS * interval, PAUSE_MIN_S)
 
 
 def _seeded(t: float, state: State, fix: FixRecord, shift: tuple[float, float]) -> Anchor:

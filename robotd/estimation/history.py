@@ -224,13 +224,17 @@ class History:
             if track.gap_var[k] and k > 0:
                 moved = self._blurred(moved, k, (t - at) / (track.t[k] - track.t[k - 1]))
             return moved
-        u = pending()
+        return self.beyond_newest(state, at, t, pending())
+
+    def beyond_newest(self, state: State, at: float, t: float, u: Twist3) -> State:
+        """The state at `at` (at or past the newest step) moved on to t with the twist u held since that step."""
         moved = self.predictor.move(state, u, t - at)
         stale_after = self.predictor.stale_after_s
-        if track.t and t - track.t[-1] > stale_after and u != (0.0, 0.0, 0.0):
+        newest = self.track.t[-1]
+        if t - newest > stale_after and u != (0.0, 0.0, 0.0):
             # past the stream's next sample, the held twist is a guess that ages: add what its age adds since `at`
             # (a robot at rest when the stream went quiet most likely stays so: a stream may publish only changes)
-            age0, age1 = max(at - track.t[-1] - stale_after, 0.0), t - track.t[-1] - stale_after
+            age0, age1 = max(at - newest - stale_after, 0.0), t - newest - stale_after
             grown = (age1**3 - age0**3) / 3.0
             moved = blurred(moved, ACCEL_DENSITY * grown, ANGULAR_ACCEL_DENSITY * grown)
         return moved
