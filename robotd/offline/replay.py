@@ -318,6 +318,11 @@ def format_table(result: ReplayResult) -> str:
         f"late {c['late_fixes']}, too old {c['fixes_too_old']}, "
         f"dropped {c['dropped_non_finite'] + c['dropped_out_of_order']}"
     )
+    if c["odometry_pauses"]:
+        lines.append(
+            f"odometry paused {c['odometry_pauses']} time(s) while the robot moved (the motion in each gap bridged as "
+            f"a guess); the heading was lost after {c['heading_lost']} of them"
+        )
     if result.unknown_types:
         lines.append("unknown event types: " + ", ".join(f"{k} x{v}" for k, v in sorted(result.unknown_types.items())))
     return "\n".join(lines)

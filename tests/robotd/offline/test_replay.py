@@ -19,7 +19,7 @@ from robotd.estimation import ekf
 from robotd.logs.sensorlog import SensorLog, Truth, read_log
 from robotd.offline import librsf
 from robotd.offline.estimates import read_estimates
-from robotd.offline.replay import BASELINES, replay, write_outputs
+from robotd.offline.replay import BASELINES, format_table, replay, write_outputs
 
 LIBRSF = SHARED / "datasets" / "librsf_labyrinth_uwb"
 
@@ -262,6 +262,7 @@ def test_a_pause_in_the_wheel_stream_leaves_the_estimate_on_the_fixes_and_honest
     result = replay(SensorLog(log.meta, kept, log.problems, log.unknown_types, log.lines), config)
     assert result.counters["odometry_pauses"] == 1
     assert result.counters["heading_lost"] == 0  # the ticks after the pause measure its turn
+    assert "odometry paused 1 time(s) while the robot moved" in format_table(result)
     assert result.metrics is not None
     ours = result.metrics["ekf"]
     assert ours is not None
