@@ -98,6 +98,33 @@ class LearntNoise:
     process_noise_scale: float = 1.0
 
 
+class StreamPace:
+    """An odometry stream's sampling interval (a running mean of the gaps between its samples), and how late a sample
+    may come before the stream has paused."""
+
+    __slots__ = ("interval_s", "pause_after_s")
+
+    def __init__(self) -> None:
+        self.interval_s = 0.0
+        self.pause_after_s = math.inf  # until the interval is known
+
+    def paused_by(self, gap: float, floor_s: float = 0.0) -> bool:
+        """Whether a sample `gap` after the one before ends a pause; otherwise the gap joins the interval (taken as at
+        least floor_s: a stream read in steps of that length)."""
+        if gap > self.pause_after_s:
+            return True
+        if 0.0 < gap < 1.0:  # a longer gap is a pause in the stream, not its interval
+            interval = gap if self.interval_s == 0.0 else 0.9 * self.interval_s + 0.1 * gap
+            self.interval_s = interval
+            self.pause_after_s = max(STREAM_PAUSE_PERIODS * max(interval, floor_s), PAUSE_MIN_S)
+        return False
+
+    def bridge(self, gap: float) -> float:
+        """The variance factor of the motion in a pause of `gap` beyond one interval: (gap^3 - interval^3) / 12, times
+        an acceleration density (robotd.estimation.history: a velocity pinned at both ends)."""
+        return (gap**3 - self.interval_s**3) / 12.0
+
+
 class Estimator:
     """Pose estimation from wheel odometry and IPS fixes (see the module docstring)."""
 
@@ -148,11 +175,8 @@ class Estimator:
         first = Anchor(-math.inf, x0, y0, ekf.wrap_angle(th0), ekf.cov_diag(*c.initial_sigma), None)
         self._history = History(self._track, self._predictor, first, c.history_s, keep_past=c.latency_compensation)
         self._last_accept_t = -math.inf
-        self._twist_period_s = 0.0  # the twist samples' period (a running mean of their intervals)
-        self._wheel_interval_s = 0.0  # the same for wheel samples
-        # how late each stream's next sample may be before the stream has paused (infinite until its interval is known)
-        self._twist_pause_after_s = math.inf
-        self._wheel_pause_after_s = math.inf
+        self._twist_pace = StreamPace()  # the twist samples' period, and when their stream has paused
+        self._wheel_pace = StreamPace()  # the same for wheel samples
         self._last_twist_t = -math.inf
         self._fixes_timed = False  # whether the newest fix stated its measurement time
         self._wheels = WheelFeed(TickKinematics(geometry, counts_per_rev), c.predict_period_s)
@@ -206,14 +230,11 @@ class Estimator:
             return
         self.counters["wheels"] += 1
         before_t = wheels.last_t
-        gap = t - before_t
-        paused = gap > self._wheel_pause_after_s
+        gap, pace = t - before_t, self._wheel_pace
+        paused = pace.paused_by(gap, wheels.period)
         held = self._pending() if paused else None  # the twist in force when the stream went quiet
-        if 0.0 < gap < 1.0 and not paused:  # as for twists: a longer gap is a pause, not the stream's interval
-            interval = self._wheel_interval_s
-            self._wheel_interval_s = interval = gap if interval == 0.0 else 0.9 * interval + 0.1 * gap
-            self._wheel_pause_after_s = max(STREAM_PAUSE_PERIODS * max(interval, wheels.period), PAUSE_MIN_S)
-            self._predictor.stale_after_s = self._wheel_pause_after_s
+        if not paused:
+            self._predictor.stale_after_s = pace.pause_after_s
         step = wheels.sample(t, ticks)
         if step is None:
             return
@@ -224,7 +245,7 @@ class Estimator:
         # a pause while moving: the ticks measure the gap's displacement and turn, but not the path between (one arc
         # is a guess)
         self.counters["odometry_pauses"] += 1
-        bridge = (gap**3 - self._wheel_interval_s**3) / 12.0
+        bridge = pace.bridge(gap)
         self._step_to(step[0], step[1], step[1], (ACCEL_DENSITY * bridge, 0.0))
         self._after_pause(before_t)
 
@@ -237,12 +258,10 @@ class Estimator:
             self.counters["dropped_out_of_order"] += 1
             return
         self.counters["twists"] += 1
-        gap, period = t - self._last_twist_t, self._twist_period_s
-        paused = gap > self._twist_pause_after_s
-        if 0.0 < gap < 1.0 and not paused:  # a longer gap is a pause in the stream, not its period
-            self._twist_period_s = period = gap if period == 0.0 else 0.9 * period + 0.1 * gap
-            self._twist_pause_after_s = max(STREAM_PAUSE_PERIODS * period, PAUSE_MIN_S)
-            self._predictor.stale_after_s = self._twist_pause_after_s
+        gap, pace = t - self._last_twist_t, self._twist_pace
+        paused = pace.paused_by(gap)
+        if not paused:
+            self._predictor.stale_after_s = pace.pause_after_s
         self._last_twist_t = t
         track = self._track
         if not len(track):
@@ -260,13 +279,13 @@ class Estimator:
         # stayed so (quiet because nothing changed); one that was moving leaves the motion in the gap a guess, as
         # uncertain as a velocity pinned at both ends may wander (a dropped connection, a stalled recorder)
         if held == (0.0, 0.0, 0.0):
-            self._step_to(t - period, held, held)
+            self._step_to(t - pace.interval_s, held, held)
             self._step_to(t, step_u, (vx, vy, wz))
             return
         self.counters["odometry_pauses"] += 1
-        bridge = (gap**3 - period**3) / 12.0
+        bridge = pace.bridge(gap)
         turn_var = ANGULAR_ACCEL_DENSITY * bridge
-        self._step_to(t - period, held, held, (ACCEL_DENSITY * bridge, turn_var))
+        self._step_to(t - pace.interval_s, held, held, (ACCEL_DENSITY * bridge, turn_var))
         self._step_to(t, step_u, (vx, vy, wz))
         self._after_pause(t - gap)
         self._maybe_lose_heading(turn_var)
@@ -487,7 +506,7 @@ class Estimator:
         """
         if self._calibrator is None or (self._fixes_timed and self._calibration.windows):
             return 0.0
-        return self._twist_period_s * math.sqrt(STAMP_CONVENTION_VAR)
+        return self._twist_pace.interval_s * math.sqrt(STAMP_CONVENTION_VAR)
 
     @property
     def calibration(self) -> Calibration:
@@ -669,7 +688,7 @@ class Estimator:
             else:
                 x, y, th, p, _ = self._history.move_within(state, when, t, self._pending)
             when = t
-        tau = self.time_sigma_s if self._twist_period_s > 0.0 else 0.0  # per output: wheel counts skip the call
+        tau = self.time_sigma_s if self._twist_pace.interval_s > 0.0 else 0.0  # per output: wheel counts skip the call
         if tau > 0.0:  # an error tau in the estimate's time is an error u * tau in its pose, along the motion
             c, s = math.cos(th), math.sin(th)
             ux, uy = (c * u[0] - s * u[1]) * tau, (s * u[0] + c * u[1]) * tau

@@ -10,9 +10,10 @@ from robotd.config.model import parse
 from robotd.estimation.calibration import KX, TAU_K
 from robotd.logs.sensorlog import Event, Meta, TwistSample
 from robotd.offline import librsf
+from robotd.offline.consistency import Consistency
 from robotd.offline.experiment import through_log_format
 from robotd.offline.metrics import ErrorStats
-from robotd.offline.replay import replay
+from robotd.offline.replay import ReplayResult, replay
 from robotd.sim.ips import IpsParams
 from robotd.sim.refix import refixed
 
@@ -60,17 +61,24 @@ def test_a_slow_beacon_still_calibrates_the_odometry_and_beats_its_fixes(seed: i
     assert result.consistency["ekf"].inside_95 >= 0.9
 
 
-@pytest.mark.parametrize("pause_s", [0.5, 2.0, 5.0])
-def test_a_pause_in_the_odometry_stream_is_bridged_by_the_fixes(pause_s: float) -> None:
+def _replayed_without_odometry(start_s: float, end_s: float) -> tuple[ReplayResult, ErrorStats, Consistency]:
+    """Seed 1's clean log without its twists from start_s to end_s after the log's start, replayed with the defaults:
+    the result, robotd's error and its consistency."""
     meta, events = _with_simulated_fixes(1)
-    start = events[0].t + 10.0  # mid-run, driving: a recorder that stalled, a dropped connection
-    paused = [e for e in events if not (isinstance(e, TwistSample) and start <= e.t <= start + pause_s)]
-    result = replay(through_log_format(meta, paused), parse(""))
-    assert result.counters["odometry_pauses"] == 1
+    t0 = events[0].t
+    kept = [e for e in events if not (isinstance(e, TwistSample) and t0 + start_s <= e.t <= t0 + end_s)]
+    result = replay(through_log_format(meta, kept), parse(""))
     assert result.metrics is not None
     ours = result.metrics["ekf"]
     assert isinstance(ours, ErrorStats)
-    honesty = result.consistency["ekf"]
+    return result, ours, result.consistency["ekf"]
+
+
+@pytest.mark.parametrize("pause_s", [0.5, 2.0, 5.0])
+def test_a_pause_in_the_odometry_stream_is_bridged_by_the_fixes(pause_s: float) -> None:
+    # mid-run, driving: a recorder that stalled, a dropped connection
+    result, ours, honesty = _replayed_without_odometry(10.0, 10.0 + pause_s)
+    assert result.counters["odometry_pauses"] == 1
     # the sample after the pause used to carry the whole gap as if the robot had moved at its speed throughout, with
     # the covariance of one sample period: 2 s put the estimate 0.4 m off (NEES 31), 5 s 3.3 m (NEES 849), the fixes
     # gated until a recovery. Now the gap's motion is as uncertain as it is, and a second or more leaves the heading
@@ -83,14 +91,8 @@ def test_a_pause_in_the_odometry_stream_is_bridged_by_the_fixes(pause_s: float) 
 
 
 def test_odometry_that_starts_after_the_robot_drove_off_does_not_lose_it() -> None:
-    meta, events = _with_simulated_fixes(1)
-    start = events[0].t + 3.0  # the fixes began at power-on, the odometry's recorder three seconds later
-    late = [e for e in events if not (isinstance(e, TwistSample) and e.t < start)]
-    result = replay(through_log_format(meta, late), parse(""))
-    assert result.metrics is not None
-    ours = result.metrics["ekf"]
-    assert isinstance(ours, ErrorStats)
-    honesty = result.consistency["ekf"]
+    # the fixes began at power-on, the odometry's recorder three seconds later
+    _, ours, honesty = _replayed_without_odometry(-1.0, 3.0)
     # the time before the first odometry was a step at rest, certain: the robot drove off (at 1.2 s) under a
     # position held still, the fixes were gated, and it was 0.7 m off until a recovery (RMSE 0.15 m, NEES 37)
     assert ours.rmse_m < 0.03
