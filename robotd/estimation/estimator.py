@@ -514,15 +514,14 @@ class Estimator:
         return self._calibration
 
     def _paused_at(self, t: float) -> bool:
-        """Whether the odometry at t is a guess: within a pause's step, or past the newest step by more than the
-        stream's interval allows."""
+        """Whether the odometry at t is a guess: before any, within a pause's step, or past the newest step with the
+        held twist gone stale (robotd.estimation.history.History.stale)."""
         track = self._track
         if not track.t:
-            return True  # no odometry yet
+            return True
         if t > track.t[-1]:
-            return t - track.t[-1] > self._predictor.stale_after_s
-        k = bisect.bisect_left(track.t, t)
-        return bool(track.gap_var[k]) or (k + 1 < len(track) and bool(track.gap_var[k + 1]))
+            return self._history.stale(t, self._pending())
+        return bool(track.gap_var[bisect.bisect_left(track.t, t)])
 
     def _remake_after(self, t: float) -> None:
         """Make the anchors after t again on the steps now known (fixes fused during a pause in the odometry met a

@@ -226,14 +226,18 @@ class History:
             return moved
         return self.beyond_newest(state, at, t, pending())
 
+    def stale(self, t: float, u: Twist3) -> bool:
+        """Whether the twist u, held since the newest step, is a guess at t: the stream's next sample is overdue and the
+        robot was moving (one at rest when the stream went quiet most likely stays so: a stream may publish only
+        changes, an encoder source at rest only an edge or a keep-alive)."""
+        return t - self.track.t[-1] > self.predictor.stale_after_s and u != (0.0, 0.0, 0.0)
+
     def beyond_newest(self, state: State, at: float, t: float, u: Twist3) -> State:
         """The state at `at` (at or past the newest step) moved on to t with the twist u held since that step."""
         moved = self.predictor.move(state, u, t - at)
-        stale_after = self.predictor.stale_after_s
-        newest = self.track.t[-1]
-        if t - newest > stale_after and u != (0.0, 0.0, 0.0):
+        if self.stale(t, u):
             # past the stream's next sample, the held twist is a guess that ages: add what its age adds since `at`
-            # (a robot at rest when the stream went quiet most likely stays so: a stream may publish only changes)
+            stale_after, newest = self.predictor.stale_after_s, self.track.t[-1]
             age0, age1 = max(at - newest - stale_after, 0.0), t - newest - stale_after
             grown = (age1**3 - age0**3) / 3.0
             moved = blurred(moved, ACCEL_DENSITY * grown, ANGULAR_ACCEL_DENSITY * grown)

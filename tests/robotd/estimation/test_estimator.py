@@ -293,6 +293,20 @@ def test_an_encoder_source_idling_at_rest_is_no_pause_but_one_that_stops_while_m
     assert est.counters["heading_lost"] == 0  # the ticks measured the turn
 
 
+def test_a_stream_quiet_at_rest_still_lets_the_fixes_teach_their_noise() -> None:
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)
+    x, _, _ = _drive(est, 3.0, (0.3, 0.0, 0.0), noise=0.03)
+    est.on_twist(3.01, 0.0, 0.0, 0.0)  # stopped; a stream that publishes only changes says nothing more
+    rng = random.Random(4)
+    for k in range(1, 160):  # 20 s at rest, the fixes far noisier than configured (an echo-prone corner)
+        t = 3.01 + 0.125 * k
+        record = est.on_fix(t, x + rng.gauss(0.0, 0.12), rng.gauss(0.0, 0.12), t)
+    assert record is not None
+    # a quiet stream at rest is no pause: the prediction is not a worst case, so the innovations still measure the
+    # noise (taken for a pause, they stopped teaching it a quarter-second after the stream went quiet: 0.05 m)
+    assert record.r_m > 0.08
+
+
 def test_with_the_heading_unknown_odometry_moves_a_placed_position_along_no_guess_but_widens_it() -> None:
     def estimator(theta_sigma: float) -> Estimator:
         return Estimator(_config(predict_period_s=0.0, initial_sigma=(1.0, 1.0, theta_sigma)), GEOMETRY, (0, 0), CPR)
