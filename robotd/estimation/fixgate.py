@@ -2,15 +2,14 @@
 
 - Until the position is placed, fixes are held as candidates: `seed_fixes` that agree with each other seed it (a
   first fix may be an outlier). With none configured (the paper's filter), the first fix is judged like any other.
-- Then a fix is accepted when its NIS is within the chi-square gate (2 dof), unless it is there only because the
-  position is uncertain (`confirm_far_fixes`): a fix that would fail the gate were the prediction as good as a fix (as
-  configured, or as learnt when noisier) is held (UNCONFIRMED) and fused once the next fix agrees with it. After an
-  outage or a burst of outliers the gate is wide (metres after seconds without a fix): within it a lone outlier
-  looks like a fix that shows the drift, and took the position 0.7 m off (a real robot's start with the heading
-  unknown). Rejected fixes are remembered: when
-  they keep coming for `recovery_min_s` and agree with each other once the odometry motion is removed (as
-  innovations), the position is re-seeded on them (the robot was carried, or the filter drifted); one consistent
-  burst of outliers is too short to do that.
+- Then a fix is accepted when its NIS is within the chi-square gate (2 dof), with the noise at least as configured,
+  unless it is there only because the position is uncertain (`confirm_far_fixes`): a fix that would fail the gate were
+  the prediction as good as a fix (as configured, or as learnt when noisier) is held (UNCONFIRMED) and fused once the
+  next fix agrees with it. After an outage or a burst of outliers the gate is wide (metres after seconds without a
+  fix): within it a lone outlier looks like a fix that shows the drift, and took the position 0.7 m off (a real robot's
+  start with the heading unknown). Rejected fixes are remembered: when they keep coming for `recovery_min_s` and agree
+  with each other once the odometry motion is removed (as innovations), the position is re-seeded on them (the robot
+  was carried, or the filter drifted); one consistent burst of outliers is too short to do that.
 - The IPS noise variance is estimated from the median of recent innovations, less what the prediction accounts for,
   up to ips_sigma_max_m^2; at least ips_sigma_m^2 (the configured prior) until the fixes have been judged
   (`trust_quieter_fixes`), at least ips_sigma_min_m^2 after: consecutive fixes whose errors persist agree with each
@@ -89,7 +88,7 @@ class FixGate:
         if learn and config.adaptive_ips_noise and self._samples_noise(inn, r):
             self._learn_noise(inn, r)
         rejection = Verdict.GATED
-        if not config.gating or inn.nis <= self.gate:
+        if not config.gating or self._inside_gate(inn, r):
             if not (config.confirm_far_fixes and self._unconfirmed(t_meas, inn, r)):
                 self.rejected.clear()
                 counters["fixes_accepted"] += 1
@@ -140,6 +139,18 @@ class FixGate:
         my = sorted(e[2] for e in innovations)[len(innovations) // 2]
         tolerance = max(self.config.recovery_agreement_m, 4.0 * math.sqrt(self.r))
         return all(math.hypot(e[1] - mx, e[2] - my) <= tolerance for e in innovations)
+
+    def _inside_gate(self, inn: ekf.Innovation, r: float) -> bool:
+        """Whether the fix passes the gate, judged with the noise at least as configured."""
+        # a learnt noise below the truth (a median of few innovations can go to the floor) gated ordinary fixes of
+        # a 2 cm IPS: the gate is there for outliers, which the configured noise tells apart as well
+        if inn.nis <= self.gate:
+            return True
+        extra = self.config.ips_sigma_m**2 - r
+        return (
+            extra > 0.0
+            and ekf.mahalanobis2(inn.nu_x, inn.nu_y, inn.s_xx + extra, inn.s_xy, inn.s_yy + extra) <= self.gate
+        )
 
     def _unconfirmed(self, t_meas: float, inn: ekf.Innovation, r: float) -> bool:
         """Whether a fix inside the gate is beyond it for a prediction as good as a fix (S = 2r, r at least the

@@ -18,7 +18,7 @@ from robotd.estimation.estimator import Estimator
 from robotd.estimation.fixgate import FixGate
 from robotd.estimation.heading import LN4
 from robotd.estimation.history import Anchor, History, Predictor, State
-from robotd.estimation.modes import Modes
+from robotd.estimation.modes import Modes, Verdict
 from robotd.estimation.track import OdometryTrack
 
 GEOMETRY = kinematics.Geometry()
@@ -205,6 +205,23 @@ def test_the_noise_estimate_goes_below_the_configured_sigma_only_once_the_fixes_
     gate.trust_quieter_fixes(0.0)
     _learn_from(gate, quiet)
     assert gate.r == pytest.approx(quiet**2, rel=0.05)
+
+
+def test_a_noise_learnt_below_the_truth_gates_only_what_the_configured_noise_would() -> None:
+    config = EkfConfig(ips_sigma_m=0.03, ips_sigma_min_m=0.005, seed_fixes=0)
+    gate = _gate(config)
+    gate.trust_quieter_fixes(0.0)
+    _learn_from(gate, 0.005)  # a few quiet innovations put a 2 cm IPS's noise at the 5 mm floor
+    assert gate.r == pytest.approx(0.005**2)
+    p = 0.01**2  # the prediction's variance per axis
+
+    def verdict(nu: float) -> Verdict:
+        s = p + gate.r
+        return gate.judge(0.0, ekf.Innovation(nu, 0.0, s, 0.0, s, nu * nu / s, 0.0, 0.0), gate.r, learn=False)
+
+    # 6 cm is 2.7 sigma of the 2 cm IPS, and 5.4 sigma of the learnt noise: an ordinary fix, gated on the 5 mm
+    assert verdict(0.06) is Verdict.ACCEPTED
+    assert verdict(0.5) is Verdict.GATED  # an echo is as far outside the configured noise's gate as the learnt's
 
 
 def test_fixes_judged_correlated_keep_the_noise_the_judging_fit_saw() -> None:

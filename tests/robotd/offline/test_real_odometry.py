@@ -43,6 +43,9 @@ def test_a_robot_starting_in_an_untold_direction_is_tracked_better_than_by_its_f
     # the position until a fit of sigma 0.3 rad let it lag the first half-second of driving, 1.3x their largest
     assert ours.rmse_m < fixes.rmse_m
     assert ours.max_m < fixes.max_m
+    # no fix here is an outlier: a noise estimate that a few quiet innovations put at its 5 mm floor gated 1-4 of
+    # them, until the gate judged with the noise at least as configured
+    assert result.counters["fixes_rejected"] == 0
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -56,6 +59,7 @@ def test_a_slow_beacon_still_calibrates_the_odometry_and_beats_its_fixes(seed: i
     # a window of 1.5 m held about 20 fixes, too few to move the scales, and closed: the calibration stayed at its
     # prior (sigma 0.1) and robotd's RMSE was above the fixes' own on seed 3
     assert result.calibration.sigmas[KX] < 0.02
+    assert result.counters["fixes_rejected"] == 0  # none is an outlier
     assert ours.rmse_m < 0.9 * fixes.rmse_m
     assert result.consistency["ekf"].inside_95 is not None
     assert result.consistency["ekf"].inside_95 >= 0.9
