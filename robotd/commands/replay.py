@@ -83,12 +83,14 @@ def run_replay(args: argparse.Namespace) -> int:
         return os.EX_NOINPUT
     read_problems = log.problems
     try:
-        log, checked_problems = logcheck.check(log, robot_from_log(log, config)[2])
+        log, checked_problems, notes = logcheck.check(log, robot_from_log(log, config)[2])
     except logcheck.LogRefusedError as refusal:
         _report(args.log, [*read_problems, *refusal.problems])
         print(f"robotd replay: {args.log}: {refusal}; nothing replayed", file=sys.stderr)
         return os.EX_DATAERR
     _report(args.log, [*read_problems, *checked_problems])
+    for note in notes:
+        print(f"robotd replay: {args.log}: {note}", file=sys.stderr)
     result = replay(log, config, start)
     for problem in result.problems[len(log.problems) :]:
         print(f"robotd replay: {problem}", file=sys.stderr)

@@ -38,7 +38,7 @@ def run_tune(args: argparse.Namespace) -> int:
             print(f"robotd tune: {path}: {error.strerror or error}", file=sys.stderr)
             return os.EX_NOINPUT
         try:
-            log, _ = logcheck.check(log, robot_from_log(log, config)[2])
+            log = logcheck.check(log, robot_from_log(log, config)[2]).log
         except logcheck.LogRefusedError as refusal:
             print(f"robotd tune: {path}: {refusal}", file=sys.stderr)
             return os.EX_DATAERR

@@ -8,6 +8,7 @@ line, as the reader reports its lines; only a log that cannot be replayed as a w
 - a time (`t`, or a fix's `t_meas`) beyond MAX_TIME_S either side of zero is a bad line: up to 2^53 microseconds a
   double still holds a microsecond, which covers monotonic clocks and Unix time; where a log's times start does not
   matter (negative, zero or Unix time replay alike);
+- a wheel counter that wraps (16 or 32 bits) is unwrapped, and noted (robotd.logs.counters);
 - a wheel sample whose counts moved, since the previous good sample, faster than MAX_WHEEL_RAD_S for the time
   between them is a bad line (a glitch or a corrupted count; no motor turns a wheel at 1600 turns a second);
 - times that go backwards refuse the whole log, with both lines: a sensor log is in arrival order, which is what
@@ -19,10 +20,12 @@ line, as the reader reports its lines; only a log that cannot be replayed as a w
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
+from robotd.logs import counters
 from robotd.logs.sensorlog import Command, Event, IpsFix, SensorLog, Truth, TwistSample, Wheels
 
 MAX_TIME_S = 2.0**53 * 1e-6  # 9.0e9 s (285 years): beyond, a double no longer holds a microsecond
@@ -54,9 +57,18 @@ class LogRefusedError(ValueError):
         self.problems = problems
 
 
-def check(log: SensorLog, counts_per_rev: int) -> tuple[SensorLog, list[str]]:
-    """The log without its bad events, and one problem ("line N: ...") per event skipped; LogRefusedError when its times
-    go backwards or no event is left."""
+class Checked(NamedTuple):
+    """A checked log: the log to replay, one problem ("line N: ...") per event skipped, and one note ("line N: ...")
+    per repair that lost nothing (a wheel counter unwrapped)."""
+
+    log: SensorLog
+    problems: list[str]
+    notes: list[str]
+
+
+def check(log: SensorLog, counts_per_rev: int) -> Checked:
+    """The log without its bad events and with its wrapped wheel counters unwrapped (robotd.logs.counters), what was
+    skipped and what was repaired; LogRefusedError when its times go backwards or no event is left."""
     events = log.events
     count = len(events)
     lines = log.lines if len(log.lines) == count else None
@@ -69,13 +81,15 @@ def check(log: SensorLog, counts_per_rev: int) -> tuple[SensorLog, list[str]]:
     backwards = _backwards(times, keep, where)
     if backwards is not None:
         raise LogRefusedError(backwards, _problems(bad, where))
+    events, unwrapped = counters.unwrap(events, keep, counts_per_rev)
+    notes = [f"{where(index)}: {note}" for index, note in unwrapped]
     _check_wheels(events, times, keep, counts_per_rev, bad)
     keep[list(bad)] = False
     problems = _problems(bad, where)
     if not keep.any():
         raise LogRefusedError("no events", problems)
-    if not bad:
-        return log, problems
+    if not bad and not unwrapped:
+        return Checked(log, problems, notes)
     kept = keep.tolist()
     checked = SensorLog(
         log.meta,
@@ -84,7 +98,7 @@ def check(log: SensorLog, counts_per_rev: int) -> tuple[SensorLog, list[str]]:
         log.unknown_types,
         [line for line, ok in zip(lines, kept, strict=True) if ok] if lines is not None else [],
     )
-    return checked, problems
+    return Checked(checked, problems, notes)
 
 
 def _problems(bad: dict[int, str], where: _Where) -> list[str]:
@@ -192,4 +206,4 @@ def _jump(moved: npt.NDArray[np.float64], dt: float) -> str:
     )
 
 
-__all__ = ["MAX_TIME_S", "MAX_WHEEL_RAD_S", "LogRefusedError", "check"]
+__all__ = ["MAX_TIME_S", "MAX_WHEEL_RAD_S", "Checked", "LogRefusedError", "check"]

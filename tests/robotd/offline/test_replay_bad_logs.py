@@ -135,6 +135,36 @@ def test_a_glitch_in_the_first_wheel_sample_is_that_sample_not_all_the_others(
     assert f"line {first + 1}: rear-left counts jump by 7e+17" in err
 
 
+def _counter(count: int, bits: int, *, signed: bool) -> int:
+    """What a `bits`-bit encoder counter reads after `count` counts."""
+    value = count % (1 << bits)
+    return value - (1 << bits) if signed and value >= 1 << (bits - 1) else value
+
+
+@pytest.mark.parametrize(("bits", "signed", "start"), [(16, False, 0), (16, True, 0), (32, True, 2**31 - 20_000)])
+def test_a_wheel_counter_that_wraps_is_unwrapped_and_said_and_replays_as_cumulative_counts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], bits: int, signed: bool, start: int
+) -> None:
+    lines = good_lines()
+    status, err, out = replay(tmp_path, lines, capsys, "good")
+    assert (status, err) == (0, "")
+    wrapped = []
+    for line in lines:
+        event = json.loads(line)
+        if event.get("type") == "wheels":
+            event["ticks"] = [_counter(start + count, bits, signed=signed) for count in event["ticks"]]
+        wrapped.append(json.dumps(event) + "\n")
+    assert wrapped != lines
+    status, err, unwrapped = replay(tmp_path, wrapped, capsys, "wrapped")
+    assert status == 0
+    notes = err.splitlines()
+    assert notes, "no wrap was found"
+    assert all(f"counts: a {bits}-bit counter, unwrapped" in note for note in notes), err
+    assert not any("skipped" in note for note in notes)  # nothing lost: a 16-bit wrap read as motion threw the
+    # robot metres, a 32-bit one was a jump no wheel makes and lost every wheel sample after it
+    assert (unwrapped / "estimates.jsonl").read_bytes() == (out / "estimates.jsonl").read_bytes()
+
+
 def test_a_log_whose_times_go_back_is_refused_at_that_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     lines = good_lines()
     event = json.loads(lines[INSERT_AT])
