@@ -75,11 +75,13 @@ class HeadingAligner:
         self.last_fit_dist = -math.inf  # travel (in the window) at the last fit: fits are spaced FIT_SPACING apart
         self.next_fit = math.inf  # no fit is due before this distance travelled (since start-up): check() may skip
         self.window = 0  # how many windows were started: tells the fits of successive windows apart
+        self.moved = False  # whether the window's odometry points are not all one: a rotation fit needs a track
 
     def restart(self, t: float, pose: tuple[float, float, float], dist: float) -> None:
         """Start a new window at time t, where the odometry pose was `pose` after `dist` of travel."""
         if self.enabled:
             self.zxs, self.zys, self.oxs, self.oys = [], [], [], []
+            self.moved = False
             self.start_t, self.start_pose, self.start_dist = t, pose, dist
             self.last_fit_dist = -math.inf
             self.next_fit = dist + 0.4 * self.window_m
@@ -100,10 +102,13 @@ class HeadingAligner:
         ax, ay, ath = self.in_window(pose)
         ox, oy = self.offset
         c, s = math.cos(ath), math.sin(ath)
+        px, py = ax + ox * c - oy * s, ay + ox * s + oy * c
+        if not self.moved and self.oxs:
+            self.moved = px != self.oxs[0] or py != self.oys[0]
         self.zxs.append(zx)
         self.zys.append(zy)
-        self.oxs.append(ax + ox * c - oy * s)
-        self.oys.append(ay + ox * s + oy * c)
+        self.oxs.append(px)
+        self.oys.append(py)
         if len(self.zxs) > MAX_POINTS:
             for column in (self.zxs, self.zys, self.oxs, self.oys):
                 del column[: MAX_POINTS // 2]
@@ -113,6 +118,10 @@ class HeadingAligner:
     ) -> tuple[float, float, float, float, FixSpread] | None:
         """trimmed_rotation_fit of the window's track onto its fixes so far (outliers beyond 4 sigma of the IPS noise
         variance r trimmed), from min_points fixes."""
+        if not self.moved:
+            # a track that is one point has no rotation (the fit would find none): at rest with the heading unknown
+            # the estimator asks at every fix, and the window grows with every fix
+            return None
         return trimmed_rotation_fit(self.oxs, self.oys, self.zxs, self.zys, 4.0 * math.sqrt(r), min_points=min_points)
 
     def check(

@@ -3,13 +3,22 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 import pytest
 from fix_errors import ar1_errors
 
-from robotd.estimation.heading import MAX_FIT_SIGMA_RAD, FixSpread, HeadingCheck, RotationFit, trimmed_rotation_fit
+from robotd.estimation import heading
+from robotd.estimation.heading import (
+    MAX_FIT_SIGMA_RAD,
+    FixSpread,
+    HeadingAligner,
+    HeadingCheck,
+    RotationFit,
+    trimmed_rotation_fit,
+)
 from robotd.estimation.modes import HeadingEvidence, HeadingMode
 
 
@@ -76,3 +85,31 @@ def test_three_fixes_give_a_guide_whose_sigma_covers_its_error_once_the_noise_is
         z_scores.append(abs(math.remainder(got - rotation, math.tau)) / inflated)
     assert len(z_scores) > 200
     assert np.mean(np.asarray(z_scores) <= 3.0) >= 0.97
+
+
+def test_a_window_whose_track_has_not_moved_is_not_fitted_until_it_does(monkeypatch: pytest.MonkeyPatch) -> None:
+    # at rest with the heading unknown the estimator asks for a fit at every fix, over a window that grows with every
+    # fix: 0.17 ms a fix here at 12 Hz, a share of the daemon's 1 % budget at rest on a Pi; a still track has none
+    fits: list[int] = []
+    real_fit = heading.trimmed_rotation_fit
+
+    def counted(*args: Any, **kwargs: Any) -> tuple[float, float, float, float, FixSpread] | None:
+        fits.append(1)
+        return real_fit(*args, **kwargs)
+
+    monkeypatch.setattr(heading, "trimmed_rotation_fit", counted)
+    aligner = HeadingAligner(1.5, (0.0, 0.0), enabled=True)
+    aligner.restart(0.0, (0.2, 0.1, 0.4), 0.0)
+    rng = np.random.default_rng(3)
+    for i in range(200):
+        aligner.record(1.0 + rng.normal(0, 0.02), 2.0 + rng.normal(0, 0.02), 0.1 * i, (0.2, 0.1, 0.4))
+        assert aligner.fit_so_far(0.02**2) is None
+    assert fits == []
+    for i in range(1, 31):  # driving off along the window's x: now there is a track to fit
+        x = 0.05 * i
+        pose = (0.2 + x * math.cos(0.4), 0.1 + x * math.sin(0.4), 0.4)
+        aligner.record(1.0 + x + rng.normal(0, 0.02), 2.0 + rng.normal(0, 0.02), 20.0 + 0.1 * i, pose)
+    fit = aligner.fit_so_far(0.02**2)
+    assert fits
+    assert fit is not None
+    assert abs(fit[0]) < 0.1  # the window's x is the fixes' x
