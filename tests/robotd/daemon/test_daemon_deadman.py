@@ -123,12 +123,19 @@ def bare_daemon(out: Path) -> Iterator[BareDaemon]:
 
 
 def assert_the_script_stopped_every_motor_pin(daemon: BareDaemon, since: float) -> None:
-    """Only the deadman script wrote the motor pins after `since`, each low, enables first."""
+    """The deadman script wrote the motor pins after `since`, each low, enables first, and nothing else wrote them
+    after its first write.
+
+    Commands the daemon sent before it stopped may still be read after `since`: the virtual pigpiod reads its sockets
+    on a thread of this process, which a busy machine delays (a drive's last PWM writes landed just after a SIGKILL).
+    """
     writes = daemon.writes_since(since)
-    assert writes, "nothing wrote the motor pins"
-    assert {write.source for write in writes} == {"script 0"}, [(w.source, w.command, w.gpio) for w in writes]
-    assert [write.gpio for write in writes[:12]] == daemon.motor_gpios
-    assert writes[0].t - since <= daemon.config.teleop.deadman_timeout_s + STOP_BOUND_S
+    first = next((i for i, write in enumerate(writes) if write.source == "script 0"), None)
+    assert first is not None, [(w.source, w.command, w.gpio) for w in writes]
+    by_script = writes[first:]
+    assert {write.source for write in by_script} == {"script 0"}, [(w.source, w.command, w.gpio) for w in by_script]
+    assert [write.gpio for write in by_script[:12]] == daemon.motor_gpios
+    assert by_script[0].t - since <= daemon.config.teleop.deadman_timeout_s + STOP_BOUND_S
 
 
 def test_a_drive_sequence_a_sigstop_and_a_sighup_keep_the_bridge_rule_and_leave_the_pins_low(tmp_path: Path) -> None:
