@@ -260,8 +260,17 @@ class EkfConfig:
         " the initial pose is trusted and fixes are judged from the first.",
         in_range(0, 100),
     )
-    ips_sigma_m: float = setting(0.03, "Standard deviation of one IPS fix in x and y (paper's s_ips).", positive)
-    gating: bool = setting(True, "Reject fixes whose Mahalanobis distance exceeds the chi-square gate.")
+    ips_sigma_m: float = setting(
+        0.03,
+        "Standard deviation of one IPS fix in x and y (paper's s_ips): the prior of the learnt noise, and the least"
+        " noise the gate judges a fix with.",
+        positive,
+    )
+    gating: bool = setting(
+        True,
+        "Reject fixes whose Mahalanobis distance exceeds the chi-square gate (judged with the fix noise learnt or"
+        " ips_sigma_m, whichever is larger).",
+    )
     gate_probability: float = setting(
         0.999,
         "Chi-square (2 dof) probability of the gate: fixes beyond it are rejected.",
