@@ -13,35 +13,44 @@ every later count of that wheel then carries those turns. Any other step beyond 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
-from robotd.logs.events import Event, Wheels
+from robotd.logs.events import WHEEL_NAMES, Event, Wheels
+
+FloatArray = npt.NDArray[np.float64]
 
 WRAP_WHEEL_RAD_S = 200.0  # ~1900 rpm: beyond a small robot's wheel, and far below a 16-bit wrap between samples
-MIN_STEP_S = 1e-3  # samples closer than this are judged as this far apart
 COUNTER_BITS = (16, 32)
-WHEEL_NAMES = ("front-left", "front-right", "rear-left", "rear-right")
+
+
+class WheelSamples(NamedTuple):
+    """A log's wheel samples as arrays: their events' indices, counts (one row each, as floats), times, and the time
+    from each to the next (at least the check's shortest step)."""
+
+    rows: list[int]
+    ticks: FloatArray
+    t: FloatArray
+    dt: FloatArray
 
 
 def unwrap(
-    events: list[Event], usable: npt.NDArray[np.bool_], counts_per_rev: int
-) -> tuple[list[Event], list[tuple[int, str]]]:
-    """The events with every wrapped wheel counter unwrapped (the same list when none wrapped), judged on the `usable`
-    ones, and one note per wheel that wrapped: (the event of its first wrap, "front-left counts: a 16-bit counter,
+    events: list[Event], wheels: WheelSamples, counts_per_rev: int
+) -> tuple[list[Event], WheelSamples, list[tuple[int, str]]]:
+    """The events with every wrapped wheel counter unwrapped, and their samples (the same list and samples when none
+    wrapped), and one note per wheel that wrapped: (the event of its first wrap, "front-left counts: a 16-bit counter,
     unwrapped 3 times from here")."""
-    rows = [i for i, event in enumerate(events) if type(event) is Wheels and usable[i]]
-    samples = [event for i, event in enumerate(events) if type(event) is Wheels and usable[i]]
-    if len(samples) < 2:
-        return events, []
-    # float64 only finds the candidate steps (exact for counters up to 2^53); the wraps are judged on the integers
-    ticks = np.array([sample.ticks for sample in samples], dtype=np.float64)
-    t = np.array([sample.t for sample in samples], dtype=np.float64)
-    limit = WRAP_WHEEL_RAD_S / (2.0 * math.pi) * counts_per_rev * np.maximum(np.diff(t), MIN_STEP_S)
+    rows, ticks = wheels.rows, wheels.ticks
+    if len(rows) < 2:
+        return events, wheels, []
+    limit = WRAP_WHEEL_RAD_S / (2.0 * math.pi) * counts_per_rev * wheels.dt
+    # the floats only find the candidate steps (exact for counters up to 2^53); the wraps are judged on the integers
     beyond = np.abs(np.diff(ticks, axis=0)) > limit[:, None]
     if not beyond.any():
-        return events, []  # the usual case
+        return events, wheels, []  # the usual case
+    samples = [event for i in rows if type(event := events[i]) is Wheels]
     added: dict[int, list[int]] = {}  # sample -> the counts to add to it and every later one, per wheel
     notes: list[tuple[int, str]] = []
     for wheel in range(4):
@@ -58,7 +67,7 @@ def unwrap(
                 (rows[first], f"{WHEEL_NAMES[wheel]} counts: a {bits}-bit counter, unwrapped {times} from here")
             )
     if not added:
-        return events, []
+        return events, wheels, []
     events = list(events)
     carried = [0, 0, 0, 0]
     for k in range(min(added), len(samples)):
@@ -66,8 +75,9 @@ def unwrap(
             carried = [c + a for c, a in zip(carried, added[k], strict=True)]
         sample = samples[k]
         a, b, c, d = sample.ticks
-        events[rows[k]] = Wheels(sample.t, (a + carried[0], b + carried[1], c + carried[2], d + carried[3]))
-    return events, notes
+        samples[k] = Wheels(sample.t, (a + carried[0], b + carried[1], c + carried[2], d + carried[3]))
+        events[rows[k]] = samples[k]
+    return events, wheels._replace(ticks=np.array([sample.ticks for sample in samples], dtype=np.float64)), notes
 
 
 def _wrap(before: int, after: int, bound: float) -> tuple[int, int] | None:
@@ -89,4 +99,4 @@ def _in_range(count: int, bits: int) -> bool:
     return -(1 << (bits - 1)) <= count < (1 << bits)
 
 
-__all__ = ["WRAP_WHEEL_RAD_S", "unwrap"]
+__all__ = ["WRAP_WHEEL_RAD_S", "WheelSamples", "unwrap"]

@@ -31,6 +31,9 @@ class Meta(msgspec.Struct, frozen=True, tag="meta"):
     version: int = VERSION
 
 
+WHEEL_NAMES = ("front-left", "front-right", "rear-left", "rear-right")  # the order of Wheels.ticks
+
+
 class Wheels(msgspec.Struct, frozen=True, gc=False, tag="wheels"):
     """Cumulative decoded encoder counts, wheel order FL FR RL RR."""
 
@@ -132,6 +135,7 @@ __all__ = [
     "FORMAT",
     "TYPES",
     "VERSION",
+    "WHEEL_NAMES",
     "Command",
     "Event",
     "IpsFix",

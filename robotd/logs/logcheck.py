@@ -26,12 +26,13 @@ import numpy as np
 import numpy.typing as npt
 
 from robotd.logs import counters
+from robotd.logs.counters import WheelSamples
+from robotd.logs.events import WHEEL_NAMES
 from robotd.logs.sensorlog import Command, Event, IpsFix, SensorLog, Truth, TwistSample, Wheels
 
 MAX_TIME_S = 2.0**53 * 1e-6  # 9.0e9 s (285 years): beyond, a double no longer holds a microsecond
 MAX_WHEEL_RAD_S = 1e4  # ~1600 turns a second: a hundred times any robot's wheel, far below a corrupted count
 MIN_STEP_S = 1e-3  # two samples closer than this (or at the same time) may be this far apart in counts
-WHEEL_NAMES = ("front-left", "front-right", "rear-left", "rear-right")
 MAX_POSITION_M = 1e7  # Marvelmind's int32 millimetres end at ±2147 km; a map is far smaller
 MAX_SPEED_MPS = 1e3
 LIMITS = {
@@ -81,9 +82,9 @@ def check(log: SensorLog, counts_per_rev: int) -> Checked:
     backwards = _backwards(times, keep, where)
     if backwards is not None:
         raise LogRefusedError(backwards, _problems(bad, where))
-    events, unwrapped = counters.unwrap(events, keep, counts_per_rev)
+    events, wheels, unwrapped = counters.unwrap(events, _wheel_samples(events, times, keep), counts_per_rev)
     notes = [f"{where(index)}: {note}" for index, note in unwrapped]
-    _check_wheels(events, times, keep, counts_per_rev, bad)
+    _check_wheels(wheels, counts_per_rev, bad)
     keep[list(bad)] = False
     problems = _problems(bad, where)
     if not keep.any():
@@ -166,22 +167,22 @@ def _backwards(times: npt.NDArray[np.float64], keep: npt.NDArray[np.bool_], wher
     )
 
 
-def _check_wheels(
-    events: list[Event],
-    times: npt.NDArray[np.float64],
-    keep: npt.NDArray[np.bool_],
-    counts_per_rev: int,
-    bad: dict[int, str],
-) -> None:
+def _wheel_samples(events: list[Event], times: npt.NDArray[np.float64], keep: npt.NDArray[np.bool_]) -> WheelSamples:
+    """The kept wheel samples as arrays, once for the unwrap and the jump check."""
+    rows = [i for i, event in enumerate(events) if type(event) is Wheels and keep[i]]
+    t = times[rows]
+    ticks = np.array([event.ticks for i in rows if type(event := events[i]) is Wheels], dtype=np.float64)
+    return WheelSamples(rows, ticks.reshape(-1, 4), t, np.maximum(np.diff(t), MIN_STEP_S))
+
+
+def _check_wheels(wheels: WheelSamples, counts_per_rev: int, bad: dict[int, str]) -> None:
     """Wheel samples whose counts jump, from the previous good sample, faster than MAX_WHEEL_RAD_S."""
-    rows = np.array([i for i, event in enumerate(events) if type(event) is Wheels and keep[i]], dtype=np.int64)
+    rows, ticks, t, dt = wheels
     if len(rows) < 2:
         return
-    ticks = np.array([events[i].ticks for i in rows.tolist()], dtype=np.float64)
     per_s = MAX_WHEEL_RAD_S / (2.0 * math.pi) * counts_per_rev
-    t = times[rows]
     steps = np.abs(np.diff(ticks, axis=0)).max(axis=1)
-    jumps = steps > per_s * np.maximum(np.diff(t), MIN_STEP_S)
+    jumps = steps > per_s * dt
     if not jumps.any():
         return  # every sample against the one before it: the usual case
     last = 0
@@ -190,9 +191,9 @@ def _check_wheels(
         last = 1
     for row in range(last + 1, len(rows)):  # a glitch is skipped: the next sample is compared with the last good one
         moved = ticks[row] - ticks[last]
-        dt = t[row] - t[last]
-        if np.abs(moved).max() > per_s * max(dt, MIN_STEP_S):
-            bad[int(rows[row])] = _jump(moved, dt)
+        span = t[row] - t[last]
+        if np.abs(moved).max() > per_s * max(span, MIN_STEP_S):
+            bad[int(rows[row])] = _jump(moved, span)
         else:
             last = row
 
