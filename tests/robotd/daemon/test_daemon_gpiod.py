@@ -111,8 +111,12 @@ async def test_the_daemon_drives_and_counts_on_the_gpiod_back_end_and_stops_the_
         except AssertionError as error:  # seen once under a CPU hog, not reproduced: say what the filter had
             seen = daemon._status_message(daemon.clock())
             wheels = {key: seen["filter"][key] for key in ("wheels", "dropped_out_of_order", "dropped_non_finite")}
-            encoders = seen["drivers"]["encoders"]
-            raise AssertionError(f"{error}: pose {daemon.estimator.pose()}, {wheels}, {encoders}") from error
+            counts = seen["drivers"]["encoders"]
+            feed = daemon.estimator._wheels  # what the filter holds: the sample that ended the last step, the newest
+            held = f"feed base {feed.base} at {feed.base_t}, last {feed.last} at {feed.last_t}, {feed.pending()}"
+            ticks = f"ticks decoded {getattr(daemon.encoders, 'ticks', None)} at {daemon.clock()}"
+            pose = daemon.estimator.pose()
+            raise AssertionError(f"{error}: pose {pose}, {wheels}, {counts}, {held}, {ticks}") from error
         status = daemon._status_message(daemon.clock())["drivers"]["encoders"]
         assert status["reports"] == sum(ends) == 4 * 3400
         assert (status["lost_reports"], status["state"]) == (0, "ok")
