@@ -10,9 +10,12 @@ and the status reads RUNNING until then; PROCD answers only once the script has 
 parameters whatever the script is doing. PROCR on a script that is not HALTED is PI_NOT_HALTED.
 
 Here each running script is a task on the virtual pigpiod's event loop, in real time: MILS and MICS sleep on the
-loop's clock; instructions between two delays run without a pause, yielding the loop every `YIELD_EVERY`
-instructions so a script that never sleeps cannot starve the sockets. Pin commands go through the same code as the
-socket's (`run_command`), labelled with the script's id for the pin history.
+loop's clock; instructions between two delays run without a pause, pausing every `YIELD_EVERY` instructions for
+`BUSY_PAUSE_S` so a script that never sleeps cannot starve the sockets nor the other threads of the process. The pause
+is a real sleep, not a bare yield: a loop that gives up the GIL only for an instant (select with no timeout) and takes
+it straight back starves a thread waiting for it, since CPython forces a switch only when nobody released the GIL
+for a whole switch interval (seen here: the test process's client thread waited 120 s for one answer). Pin commands
+go through the same code as the socket's (`run_command`), labelled with the script's id for the pin history.
 
 Not modelled: WAITING (WAIT and EVTWT are not modelled, see drivers.virtual.script_language); FAILED is never seen, as
 pigpiod's script thread goes back to HALTED at once after a failure (the reason is kept in `failure`); DIV or MOD by
@@ -51,6 +54,7 @@ STACK_SIZE = 256
 MAX_MILS = 60_000
 MAX_MICS = 1_000_000
 YIELD_EVERY = 1000
+BUSY_PAUSE_S = 0.001  # a busy script keeps most of the loop's time, the sockets and other threads get theirs
 
 RunCommand = Callable[[Command, str], int]
 """Runs one socket command for a script (the second argument names it for the pin history); returns the result."""
@@ -207,7 +211,7 @@ class ScriptHost:
                     await asyncio.sleep(delay_s)
                     since_yield = 0
                 elif since_yield >= YIELD_EVERY:
-                    await asyncio.sleep(0)
+                    await asyncio.sleep(BUSY_PAUSE_S)
                     since_yield = 0
                 if machine.halted:
                     break
