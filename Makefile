@@ -16,9 +16,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/robotd demo --out out/demo
 
-# Regenerates the README's figures: the offline experiment, the benchmarks, then the README's generated blocks.
+# Regenerates the README's figures: the offline experiment, the scorecards, the benchmarks, then the README's generated
+# blocks.
 docs: $(STAMP)
 	$(BIN)/robotd experiment square --loops 3 --seeds 10 --out docs/results --librsf ../shared/datasets/librsf_labyrinth_uwb
+	$(BIN)/robotd scorecard --out docs/scorecard/sim --librsf ../shared/datasets/librsf_labyrinth_uwb
+	$(BIN)/robotd scorecard --out docs/scorecard/sim-lab --config config/sim-lab.yaml
 	$(BIN)/robotd bench --report docs/bench.md --json docs/bench.json
 	$(BIN)/robotd readme README.md
 

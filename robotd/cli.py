@@ -27,6 +27,7 @@ COMMAND_MODULES = (
     "robotd.commands.sim",
     "robotd.commands.replay",
     "robotd.commands.experiment",
+    "robotd.commands.scorecard",
     "robotd.commands.tune",
     "robotd.commands.run",
     "robotd.commands.demo",

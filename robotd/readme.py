@@ -83,6 +83,8 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "imports": import_map,
     "config-reference": lambda _root: config_reference(),
     "results": _file("docs/results/results.md"),
+    "scorecard": _file("docs/scorecard/sim/summary.md"),
+    "scorecard-lab": _file("docs/scorecard/sim-lab/summary.md"),
     "bench": _file("docs/bench.md"),
 }
 
