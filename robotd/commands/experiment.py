@@ -42,19 +42,28 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     exp.set_defaults(handler=run_experiment_command)
 
 
+def seeded_run_plan(args: argparse.Namespace, command: str) -> tuple[list[int], int] | None:
+    """The seeds and worker processes that `--seeds`, `--first-seed` (default `sim.seed` of the configuration) and
+    `--workers` ask for; None, after saying why on stderr, when `--loops` or `--seeds` is below 1."""
+    for name in ("loops", "seeds"):
+        if getattr(args, name) < 1:
+            print(f"robotd {command}: --{name} must be at least 1, got {getattr(args, name)}", file=sys.stderr)
+            return None
+    first = load(args.config).sim.seed if args.first_seed is None else args.first_seed
+    workers = args.workers if args.workers is not None else min(MAX_WORKERS, os.cpu_count() or 1)
+    return list(range(first, first + args.seeds)), max(1, workers)
+
+
 def run_experiment_command(args: argparse.Namespace) -> int:
     """Run the experiment, write its outputs, print the summary and how long it took; 2 on bad arguments."""
     from robotd.offline.experiment import run_experiment  # noqa: PLC0415 - heavy imports only for this command
     from robotd.offline.experiment_report import write_results  # noqa: PLC0415
 
-    for name in ("loops", "seeds"):
-        if getattr(args, name) < 1:
-            print(f"robotd experiment: --{name} must be at least 1, got {getattr(args, name)}", file=sys.stderr)
-            return 2
+    plan = seeded_run_plan(args, "experiment")
+    if plan is None:
+        return 2
+    seeds, workers = plan
     config = load(args.config)
-    first = config.sim.seed if args.first_seed is None else args.first_seed
-    seeds = list(range(first, first + args.seeds))
-    workers = args.workers if args.workers is not None else min(MAX_WORKERS, os.cpu_count() or 1)
     out = Path(args.out)
     started = time.perf_counter()
     exp = run_experiment(
@@ -63,7 +72,7 @@ def run_experiment_command(args: argparse.Namespace) -> int:
         seeds,
         args.loops,
         config_name=str(args.config),
-        workers=max(1, workers),
+        workers=workers,
         librsf_folder=None if args.librsf is None else Path(args.librsf),
         figure_seeds=frozenset(seeds) if args.all_figures else None,
         log_dir=out / "logs" if args.keep_logs else None,
@@ -77,7 +86,7 @@ def run_experiment_command(args: argparse.Namespace) -> int:
     simulated = sum(run.duration_s for run in exp.runs)
     print(
         f"{len(seeds)} runs, {simulated:.0f} s simulated in {elapsed:.1f} s "
-        f"({simulated / max(elapsed, 1e-9):.0f}x real time, {max(1, workers)} worker(s))"
+        f"({simulated / max(elapsed, 1e-9):.0f}x real time, {workers} worker(s))"
     )
     print("wrote " + ", ".join(str(path) for path in written))
     return 0

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
 
-from robotd.commands.experiment import DEFAULT_SIM_CONFIG, MAX_WORKERS
+from robotd.commands.experiment import DEFAULT_SIM_CONFIG, MAX_WORKERS, seeded_run_plan
 from robotd.config.model import load
 from robotd.sim.scenarios import SCENARIOS
 from robotd.sim.variants import VARIANTS
@@ -47,13 +46,11 @@ def run_scorecard_command(args: argparse.Namespace) -> int:
     from robotd.offline.scorecard import build  # noqa: PLC0415 - heavy imports only for this command
     from robotd.offline.scorecard_report import write_scorecard  # noqa: PLC0415
 
-    for name in ("loops", "seeds"):
-        if getattr(args, name) < 1:
-            print(f"robotd scorecard: --{name} must be at least 1, got {getattr(args, name)}", file=sys.stderr)
-            return 2
+    plan = seeded_run_plan(args, "scorecard")
+    if plan is None:
+        return 2
+    seeds, workers = plan
     config = load(args.config)
-    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
-    workers = args.workers if args.workers is not None else min(MAX_WORKERS, os.cpu_count() or 1)
     started = time.perf_counter()
     card = build(
         config,
@@ -62,7 +59,7 @@ def run_scorecard_command(args: argparse.Namespace) -> int:
         config_name=str(args.config),
         families=tuple(args.only) if args.only else SCENARIOS + VARIANTS,
         librsf_folder=None if args.librsf is None else Path(args.librsf),
-        workers=max(1, workers),
+        workers=workers,
         progress=lambda name: print(f"scoring {name} ...", file=sys.stderr, flush=True),
     )
     written = write_scorecard(card, Path(args.out))
