@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from robotd.config.model import load
+from robotd.config.model import RobotdConfig, load
 from robotd.sim.scenarios import SCENARIOS
 from robotd.sim.variants import VARIANTS
 
@@ -42,16 +42,18 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     exp.set_defaults(handler=run_experiment_command)
 
 
-def seeded_run_plan(args: argparse.Namespace, command: str) -> tuple[list[int], int] | None:
-    """The seeds and worker processes that `--seeds`, `--first-seed` (default `sim.seed` of the configuration) and
-    `--workers` ask for; None, after saying why on stderr, when `--loops` or `--seeds` is below 1."""
+def seeded_run_plan(args: argparse.Namespace, command: str) -> tuple[RobotdConfig, list[int], int] | None:
+    """The configuration `--config` names (loaded once), and the seeds and worker processes that `--seeds`,
+    `--first-seed` (default: the configuration's `sim.seed`) and `--workers` ask for; None, after saying why on
+    stderr, when `--loops` or `--seeds` is below 1."""
     for name in ("loops", "seeds"):
         if getattr(args, name) < 1:
             print(f"robotd {command}: --{name} must be at least 1, got {getattr(args, name)}", file=sys.stderr)
             return None
-    first = load(args.config).sim.seed if args.first_seed is None else args.first_seed
+    config = load(args.config)
+    first = config.sim.seed if args.first_seed is None else args.first_seed
     workers = args.workers if args.workers is not None else min(MAX_WORKERS, os.cpu_count() or 1)
-    return list(range(first, first + args.seeds)), max(1, workers)
+    return config, list(range(first, first + args.seeds)), max(1, workers)
 
 
 def run_experiment_command(args: argparse.Namespace) -> int:
@@ -62,8 +64,7 @@ def run_experiment_command(args: argparse.Namespace) -> int:
     plan = seeded_run_plan(args, "experiment")
     if plan is None:
         return 2
-    seeds, workers = plan
-    config = load(args.config)
+    config, seeds, workers = plan
     out = Path(args.out)
     started = time.perf_counter()
     exp = run_experiment(

@@ -8,7 +8,6 @@ import time
 from pathlib import Path
 
 from robotd.commands.experiment import DEFAULT_SIM_CONFIG, MAX_WORKERS, seeded_run_plan
-from robotd.config.model import load
 from robotd.sim.scenarios import SCENARIOS
 from robotd.sim.variants import VARIANTS
 
@@ -49,8 +48,7 @@ def run_scorecard_command(args: argparse.Namespace) -> int:
     plan = seeded_run_plan(args, "scorecard")
     if plan is None:
         return 2
-    seeds, workers = plan
-    config = load(args.config)
+    config, seeds, workers = plan
     started = time.perf_counter()
     card = build(
         config,

@@ -1,4 +1,4 @@
-"""What `robotd scorecard` writes: scorecard.md (the verdicts, then a row per log) and scorecard.json.
+"""What `robotd scorecard` writes: scorecard.md (the verdicts, then a row per log), summary.md and scorecard.json.
 
 Like the experiment's results, the outputs depend only on the card (no dates, no timings), so `make docs` regenerates
 the same files from the same code and configuration.
