@@ -19,13 +19,15 @@ the prior of c from the windows before; the posterior of c is the next prior. Wh
 innovations: the filter absorbs a wrong latency into a position offset at constant velocity, and a wrong scale into
 an innovation bias along the velocity, so innovations confound the two; a window's whole path separates them (scale
 stretches the path, delay shifts it along time, visible wherever the speed changes). Windows are disjoint, so no
-fix is counted twice.
+fix is counted twice. Until the first window closes, the window so far is fitted every tenth of its travel and that
+fit is the calibration in use (not committed: the closed window's fit starts from the same prior), so a robot does
+not predict with the prior's uncertainty for the first window's whole length.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -49,6 +51,9 @@ FIXES_TO_CLOSE = MIN_INDEPENDENT_FIXES * 5 // 4
 PSI_SIGMA = 0.05  # rad per metre: heading drift from unequal traction, the prior of the window's psi
 SCALE_WALK = 0.01**2 / 60.0  # variance per second: a scale drifts about 1 % a minute at most
 LATENCY_WALK = 0.005**2 / 60.0  # s^2 per second: a delay drifts about 5 ms a minute at most
+# before the first window closes, the window so far is fitted each time it has travelled this share of a window more
+# (Calibrator._interim): a few fits, not one per fix (a fit costs milliseconds on a Pi)
+INTERIM_SHARE = 0.1
 MAX_WINDOW_S = 60.0  # a window that has not travelled its length by then starts again (bounded memory)
 TRIM_SIGMAS = 4.0
 PLACEMENT_DOF = 2.0  # per axis: the window's placement (tx, ty, phi, psi) fitted to the fixes absorbs that much error
@@ -157,6 +162,7 @@ class Calibrator:
         self._steps_u: list[tuple[float, float, float]] = []
         self._fixes: list[tuple[float, float, float, bool]] = fixes or []
         self.travel = 0.0
+        self._interim_at = self.limits.window_m * INTERIM_SHARE  # the travel of the next interim fit
 
     def _delay(self, timed: bool) -> float:
         return float(self.mean[TAU_K] if timed else self.mean[TAU_U])
@@ -173,12 +179,15 @@ class Calibrator:
 
     def on_fix(self, stated_t: float, zx: float, zy: float, *, timed: bool) -> bool:
         """An accepted fix stated at stated_t (its measurement time when `timed`, else its arrival); returns True when
-        it closed a window whose fit changed the calibration."""
+        `current` changed: a window closed and its fit was taken, or before the first one an interim fit was."""
         if math.isnan(self._t0) or stated_t - self._delay(timed) < self._t0:
             return False
         self._fixes.append((stated_t, zx, zy, timed))
         if self.travel < self.limits.window_m or len(self._fixes) < FIXES_TO_CLOSE or not self._steps_t:
-            return False
+            if self.windows or self.travel < self._interim_at or len(self._fixes) < MIN_INDEPENDENT_FIXES:
+                return False
+            self._interim_at = self.travel + self.limits.window_m * INTERIM_SHARE
+            return self._interim()
         end = self._steps_t[-1]
         # the fixes measured on this window's path; those measured after its end start the next window
         inside = [f for f in self._fixes if f[0] - self._delay(f[3]) <= end]
@@ -214,34 +223,35 @@ class Calibrator:
         self.fix_correlation = rho
         self.fix_correlated_var = variance * rho
         self.fix_var = variance
-        self.current = self._snapshot()
+        # the scales and delays in use stay as they are (an interim fit's, or the prior)
+        self.current = replace(
+            self.current, fix_correlated_var=self.fix_correlated_var, fix_correlation=rho, fix_var=variance
+        )
         return True
 
     # --- estimate ---------------------------------------------------------------------------------------
 
-    def _walk(self, t: float) -> None:
-        """Let the parameters drift by their random walk since the last fit."""
-        if not math.isnan(self._fitted_at) and t > self._fitted_at:
-            dt = t - self._fitted_at
-            walk = np.array([SCALE_WALK, SCALE_WALK, SCALE_WALK, LATENCY_WALK, LATENCY_WALK]) * dt
-            self.cov = self.cov + np.diag(walk)
-        self._fitted_at = t
+    def _walk_var(self, t: float) -> FloatArray:
+        """The parameters' variances added by their random walk from the last fit to t."""
+        dt = t - self._fitted_at if not math.isnan(self._fitted_at) and t > self._fitted_at else 0.0
+        return np.diag(np.array([SCALE_WALK, SCALE_WALK, SCALE_WALK, LATENCY_WALK, LATENCY_WALK]) * dt)
 
-    def _fit(
+    def _solve(
         self,
         t0: float,
         ends: FloatArray,
         dts: FloatArray,
         us: FloatArray,
         fixes: list[tuple[float, float, float, bool]],
-    ) -> bool:
-        """One window's Gauss-Newton fit with the prior; updates mean and cov; False when it decided nothing."""
-        self._walk(float(ends[-1]))
+    ) -> _WindowFit | None:
+        """One window's Gauss-Newton fit with the committed prior walked to the window's end; None when it decided
+        nothing. Pure: the calibration is not changed (_fit commits, _interim only reports)."""
+        prior_cov = self.cov + self._walk_var(float(ends[-1]))
         stated = np.array([f[0] for f in fixes])
         zs = np.array([[f[1], f[2]] for f in fixes])
         timed = np.array([f[3] for f in fixes])
         path = _Path(t0, ends, dts, us, self.offset)
-        prior_mean, prior_info = self.mean.copy(), np.linalg.inv(self.cov)
+        prior_mean, prior_info = self.mean.copy(), np.linalg.inv(prior_cov)
         cal = self.mean.copy()
         bx, by = path.beacon(cal, 0.0, _measured(stated, timed, cal))
         phi, tx, ty = fit_rotation(bx.tolist(), by.tolist(), zs[:, 0].tolist(), zs[:, 1].tolist())
@@ -257,7 +267,7 @@ class Calibrator:
             sigma2 = max(float(np.median(sq[keep])) / (2.0 * math.log(2.0)), 1e-6)
             keep = sq <= (TRIM_SIGMAS**2) * 2.0 * sigma2
             if keep.sum() < MIN_FIXES:
-                return False
+                return None
             rho = lag_one_correlation(residual[keep], sigma2)
             # correlated fix errors (multipath, a wall's echo) carry less information than as many independent ones:
             # an AR(1) sequence of n values is worth n (1 - rho) / (1 + rho) independent ones
@@ -276,14 +286,14 @@ class Calibrator:
             try:
                 step = np.linalg.solve(a, g)
             except np.linalg.LinAlgError:
-                return False
+                return None
             nuisance = nuisance + step[:N_NUISANCE]
             cal = cal + step[N_NUISANCE:]
             info = a
             if float(np.max(np.abs(step[N_NUISANCE:]))) < 1e-5:
                 break
         if not np.all(np.isfinite(cal)):
-            return False
+            return None
         n = int(keep.sum())
         # the residuals are the fixes' error less what the window's placement absorbed: an unbiased variance divides
         # by the fixes' worth less the placement's degrees of freedom (n - p); with errors that persist the fixes are
@@ -291,38 +301,79 @@ class Calibrator:
         # residuals put its noise at 40 % of the truth) - at most a factor of 3, for a window worth few fixes
         worth = n * information(rho)
         sigma2 *= worth / max(worth - PLACEMENT_DOF, worth / 3.0)
+        data_rho = _data_correlation(path, np.concatenate([nuisance, cal]), stated, timed, zs, keep)
+        covariance = np.linalg.inv(info)[N_NUISANCE:, N_NUISANCE:]
+        return _WindowFit(cal, 0.5 * (covariance + covariance.T), prior_cov, n, sigma2, rho, data_rho)
+
+    def _fit(
+        self,
+        t0: float,
+        ends: FloatArray,
+        dts: FloatArray,
+        us: FloatArray,
+        fixes: list[tuple[float, float, float, bool]],
+    ) -> bool:
+        """One closed window's fit, committed: updates mean and cov and the judgement of the fixes; False when it
+        decided nothing."""
+        fit = self._solve(t0, ends, dts, us, fixes)
+        if fit is None:
+            return False
+        self.cov = fit.prior_cov  # the random walk since the last fit
+        self._fitted_at = float(ends[-1])
+        n = fit.fixes
         # what fusing many fixes cannot average away: their error shared from one fix to the next (smoothed)
         # (only a correlation beyond chance, 2 / sqrt(n): the path's own small deformations by slip are not the fixes')
-        persistent = beyond_chance(rho, n)
-        correlated = sigma2 * persistent
+        persistent = beyond_chance(fit.correlation, n)
+        correlated = fit.fix_var * persistent
         smoothing = 1.0 if self.windows == 0 else 0.3
         self.fix_correlated_var += (correlated - self.fix_correlated_var) * smoothing
         self.fix_correlation += (persistent - self.fix_correlation) * smoothing
-        self.fix_var += (sigma2 - self.fix_var) * smoothing
+        self.fix_var += (fit.fix_var - self.fix_var) * smoothing
         self.windows += 1
         # the fixes' correlation is the installation's (anchors, walls), not one window's: judged over the windows
-        data_rho = _data_correlation(path, np.concatenate([nuisance, cal]), stated, timed, zs, keep)
-        self._data_correlation += (data_rho - self._data_correlation) * smoothing
+        self._data_correlation += (fit.data_correlation - self._data_correlation) * smoothing
         if n * information(self._data_correlation) < MIN_INDEPENDENT_FIXES:
             # too few independent fixes for the path's nine parameters: the fit would follow the fixes' shared error
             # (a wall's echo bends the path as a wrong scale would), so the window says nothing about the odometry
             return True
-        covariance = np.linalg.inv(info)[N_NUISANCE:, N_NUISANCE:]
-        self.mean = cal
-        self.cov = 0.5 * (covariance + covariance.T)
+        self.mean = fit.mean
+        self.cov = fit.cov
         self._clamp()
+        return True
+
+    def _interim(self) -> bool:
+        """Before the first window closes: the open window's fit so far as the calibration in use, not committed (the
+        closed window's fit replaces it, from the same prior: no fix counts twice); True when it was taken.
+
+        A robot configured from its datasheet predicts with the prior's 10 % scale uncertainty until then, and a few
+        seconds without fixes (an outlier burst) grow its position's uncertainty by a tenth of the distance driven,
+        while the fixes of the window so far already know the scales far better.
+        """
+        if not self._steps_t:
+            return False
+        fit = self._solve(
+            self._t0,
+            np.array(self._steps_t),
+            np.array(self._steps_dt),
+            np.array(self._steps_u),
+            [f for f in self._fixes if f[0] - self._delay(f[3]) <= self._steps_t[-1]],
+        )
+        # the same rule as a closed window's: a correlation judged on the window so far (no windows to smooth over)
+        if fit is None or fit.fixes * information(fit.data_correlation) < MIN_INDEPENDENT_FIXES:
+            return False
+        limits = self.limits
+        mean = np.clip(fit.mean, *_bounds(limits))
+        self.current = self._snapshot(mean, fit.cov)
         return True
 
     def _clamp(self) -> None:
         """Keep the parameters within their bounds (a fit that runs away stays bounded)."""
-        limits = self.limits
-        low = np.array([1.0 - limits.scale_limit] * 3 + [0.0, -limits.latency_max_s])
-        high = np.array([1.0 + limits.scale_limit] * 3 + [limits.latency_max_s, limits.latency_max_s])
-        self.mean = np.clip(self.mean, low, high)
+        self.mean = np.clip(self.mean, *_bounds(self.limits))
 
-    def _snapshot(self) -> Calibration:
-        m = self.mean.tolist()
-        s = np.sqrt(np.clip(np.diag(self.cov), 0.0, None)).tolist()
+    def _snapshot(self, mean: FloatArray | None = None, cov: FloatArray | None = None) -> Calibration:
+        """The committed calibration, or an interim mean and cov with the committed judgement of the fixes."""
+        m = (self.mean if mean is None else mean).tolist()
+        s = np.sqrt(np.clip(np.diag(self.cov if cov is None else cov), 0.0, None)).tolist()
         sigmas = (s[0], s[1], s[2], s[3], s[4])
         return Calibration(
             m[0],
@@ -336,6 +387,29 @@ class Calibrator:
             self.fix_correlation,
             self.fix_var,
         )
+
+
+@dataclass(frozen=True, slots=True)
+class _WindowFit:
+    """A window's fit: the calibration's posterior mean and cov, the prior it started from (walked to the window's
+    end), the fixes kept, their noise variance per axis, the residuals' lag-one correlation with the prior and on
+    the data alone."""
+
+    mean: FloatArray
+    cov: FloatArray
+    prior_cov: FloatArray
+    fixes: int
+    fix_var: float
+    correlation: float
+    data_correlation: float
+
+
+def _bounds(limits: CalibrationLimits) -> tuple[FloatArray, FloatArray]:
+    """The parameters' lower and upper bounds: scales within 1 +- scale_limit, delays within [0, latency_max_s] (the
+    time check within +-latency_max_s)."""
+    low = np.array([1.0 - limits.scale_limit] * 3 + [0.0, -limits.latency_max_s])
+    high = np.array([1.0 + limits.scale_limit] * 3 + [limits.latency_max_s, limits.latency_max_s])
+    return low, high
 
 
 def _data_correlation(  # noqa: PLR0917 - the fit's arrays as they are

@@ -467,8 +467,9 @@ class Estimator:
         calibrator = self._calibrator
         if calibrator is None or not calibrator.on_fix(stated, x, y, timed=timed):
             return
+        windows = self._calibration.windows
         calibration = self._calibration = calibrator.current
-        self.counters["calibration_windows"] += 1
+        self.counters["calibration_windows"] += calibration.windows - windows
         self._fix_gate.trust_quieter_fixes(calibration.persistent_fix_var)
         self._use_scales(calibration)
         self._newest = None  # states carried with the old scales
