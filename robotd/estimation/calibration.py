@@ -197,7 +197,7 @@ class Calibrator:
         self._start_window(end, later)
         if len(inside) < MIN_FIXES:
             return False
-        changed = self._fit(t0, ends, dts, us, inside)
+        changed = self._commit(self._solve(t0, ends, dts, us, inside), float(ends[-1]))
         self.current = self._snapshot()
         return changed
 
@@ -245,7 +245,7 @@ class Calibrator:
         fixes: list[tuple[float, float, float, bool]],
     ) -> _WindowFit | None:
         """One window's Gauss-Newton fit with the committed prior walked to the window's end; None when it decided
-        nothing. Pure: the calibration is not changed (_fit commits, _interim only reports)."""
+        nothing. Pure: the calibration is not changed (_commit commits, _interim only reports)."""
         prior_cov = self.cov + self._walk_var(float(ends[-1]))
         stated = np.array([f[0] for f in fixes])
         zs = np.array([[f[1], f[2]] for f in fixes])
@@ -305,21 +305,13 @@ class Calibrator:
         covariance = np.linalg.inv(info)[N_NUISANCE:, N_NUISANCE:]
         return _WindowFit(cal, 0.5 * (covariance + covariance.T), prior_cov, n, sigma2, rho, data_rho)
 
-    def _fit(
-        self,
-        t0: float,
-        ends: FloatArray,
-        dts: FloatArray,
-        us: FloatArray,
-        fixes: list[tuple[float, float, float, bool]],
-    ) -> bool:
-        """One closed window's fit, committed: updates mean and cov and the judgement of the fixes; False when it
-        decided nothing."""
-        fit = self._solve(t0, ends, dts, us, fixes)
+    def _commit(self, fit: _WindowFit | None, end: float) -> bool:
+        """A closed window's fit (ending at `end`) committed: updates mean and cov and the judgement of the fixes;
+        False when it decided nothing (no fit)."""
         if fit is None:
             return False
         self.cov = fit.prior_cov  # the random walk since the last fit
-        self._fitted_at = float(ends[-1])
+        self._fitted_at = end
         n = fit.fixes
         # what fusing many fixes cannot average away: their error shared from one fix to the next (smoothed)
         # (only a correlation beyond chance, 2 / sqrt(n): the path's own small deformations by slip are not the fixes')
