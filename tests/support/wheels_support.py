@@ -68,7 +68,9 @@ def drive_wheels(
     return driven
 
 
-async def eventually(condition: Callable[[], bool], timeout_s: float = 3.0) -> None:
+async def eventually(condition: Callable[[], bool], timeout_s: float = 15.0) -> None:
+    """Wait until `condition` holds, at most timeout_s: a bound on how long a real failure takes to show, not a
+    speed target (the virtual pigpiod's thread lagged past 3 s in a full suite with a CPU hog beside it)."""
     async with asyncio.timeout(timeout_s):
         while not condition():
             await asyncio.sleep(0.005)

@@ -48,13 +48,15 @@ async def test_counts_through_the_socket_are_exact_across_the_tick_wrap(decoding
         source = PigpioEncoders(encoders, PigpiodConfig(port=server.port))
         published: list[WheelTicks] = []
         task = asyncio.create_task(source.run(published.append))
-        await eventually(lambda: source.connected)
-        assert server.tick() < BEFORE_WRAP, "the test took 5 s to connect: the stream would be stamped in the past"
-        driven = drive_wheels(server, encoders, MOVES, start=BEFORE_WRAP)
-        total_edges = sum(len(m) for m in MOVES)
-        await eventually(lambda: source.counters.reports == total_edges)
-        await eventually(lambda: len(published) >= 2)
-        await stop(task)
+        try:
+            await eventually(lambda: source.connected)
+            assert server.tick() < BEFORE_WRAP, "the test took 5 s to connect: the stream would be stamped in the past"
+            driven = drive_wheels(server, encoders, MOVES, start=BEFORE_WRAP)
+            total_edges = sum(len(m) for m in MOVES)
+            await eventually(lambda: source.counters.reports == total_edges)
+            await eventually(lambda: len(published) >= 2)
+        finally:  # a failure leaves no connection open for a later test's garbage collection to report
+            await stop(task)
     assert driven[-1] < driven[0]  # the edges' ticks wrapped around 2^32
     # Every wheel starts at position 2 of the Gray cycle (pins pulled up).
     assert list(source.ticks) == [_count_from(2, m, decoding) * s for m, s in zip(MOVES, [1, 1, 1, -1], strict=True)]
