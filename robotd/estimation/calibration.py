@@ -190,7 +190,7 @@ class Calibrator:
             return self._interim()
         end = self._steps_t[-1]
         # the fixes measured on this window's path; those measured after its end start the next window
-        inside = [f for f in self._fixes if f[0] - self._delay(f[3]) <= end]
+        inside = self._measured_by(end)
         later = [f for f in self._fixes if f[0] - self._delay(f[3]) > end]
         t0, ends = self._t0, np.array(self._steps_t)
         dts, us = np.array(self._steps_dt), np.array(self._steps_u)
@@ -200,6 +200,10 @@ class Calibrator:
         changed = self._commit(self._solve(t0, ends, dts, us, inside), float(ends[-1]))
         self.current = self._snapshot()
         return changed
+
+    def _measured_by(self, end: float) -> list[tuple[float, float, float, bool]]:
+        """The window's fixes measured by `end` (their stated time less their delay)."""
+        return [f for f in self._fixes if f[0] - self._delay(f[3]) <= end]
 
     @property
     def judged(self) -> bool:
@@ -324,9 +328,7 @@ class Calibrator:
         self.windows += 1
         # the fixes' correlation is the installation's (anchors, walls), not one window's: judged over the windows
         self._data_correlation += (fit.data_correlation - self._data_correlation) * smoothing
-        if n * information(self._data_correlation) < MIN_INDEPENDENT_FIXES:
-            # too few independent fixes for the path's nine parameters: the fit would follow the fixes' shared error
-            # (a wall's echo bends the path as a wrong scale would), so the window says nothing about the odometry
+        if not _moves_the_odometry(n, self._data_correlation):
             return True
         self.mean = fit.mean
         self.cov = fit.cov
@@ -341,21 +343,19 @@ class Calibrator:
         seconds without fixes (an outlier burst) grow its position's uncertainty by a tenth of the distance driven,
         while the fixes of the window so far already know the scales far better.
         """
-        if not self._steps_t:
-            return False
+        # on_fix calls it only once the window has travelled, so it has steps
+        steps = self._steps_t
         fit = self._solve(
             self._t0,
-            np.array(self._steps_t),
+            np.array(steps),
             np.array(self._steps_dt),
             np.array(self._steps_u),
-            [f for f in self._fixes if f[0] - self._delay(f[3]) <= self._steps_t[-1]],
+            self._measured_by(steps[-1]),
         )
         # the same rule as a closed window's: a correlation judged on the window so far (no windows to smooth over)
-        if fit is None or fit.fixes * information(fit.data_correlation) < MIN_INDEPENDENT_FIXES:
+        if fit is None or not _moves_the_odometry(fit.fixes, fit.data_correlation):
             return False
-        limits = self.limits
-        mean = np.clip(fit.mean, *_bounds(limits))
-        self.current = self._snapshot(mean, fit.cov)
+        self.current = self._snapshot(np.clip(fit.mean, *_bounds(self.limits)), fit.cov)
         return True
 
     def _clamp(self) -> None:
@@ -394,6 +394,16 @@ class _WindowFit:
     fix_var: float
     correlation: float
     data_correlation: float
+
+
+def _moves_the_odometry(fixes: int, correlation: float) -> bool:
+    """Whether a window's `fixes`, of lag-one `correlation`, are worth the independent ones that its fit needs to say
+    anything about the odometry.
+
+    With fewer than that for the path's nine parameters the fit would follow the fixes' shared error (a wall's echo
+    bends the path as a wrong scale would).
+    """
+    return fixes * information(correlation) >= MIN_INDEPENDENT_FIXES
 
 
 def _bounds(limits: CalibrationLimits) -> tuple[FloatArray, FloatArray]:
