@@ -343,7 +343,10 @@ class EkfConfig:
         "says so. It settles within about 30 s of driving.",
     )
     process_noise_scale_min: float = setting(
-        0.1, "Smallest factor the learnt scale may put on the odometry noise variances.", in_range(0.01, 1.0)
+        0.01,
+        "Smallest factor the learnt scale may put on the odometry noise variances (a flat floor's odometry drifts a "
+        "hundredth of the default noise or less).",
+        in_range(0.01, 1.0),
     )
     process_noise_scale_max: float = setting(
         4.0, "Largest factor the learnt scale may put on the odometry noise variances.", in_range(1.0, 100.0)
