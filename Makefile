@@ -22,6 +22,8 @@ docs: $(STAMP)
 	$(BIN)/robotd experiment square --loops 3 --seeds 10 --out docs/results --librsf ../shared/datasets/librsf_labyrinth_uwb
 	$(BIN)/robotd scorecard --out docs/scorecard/sim --librsf ../shared/datasets/librsf_labyrinth_uwb
 	$(BIN)/robotd scorecard --out docs/scorecard/sim-lab --config config/sim-lab.yaml
+	$(BIN)/robotd scorecard --out docs/scorecard/sim-heldout --seeds 6 --first-seed 4 --librsf ../shared/datasets/librsf_labyrinth_uwb
+	$(BIN)/robotd scorecard --out docs/scorecard/sim-lab-heldout --seeds 6 --first-seed 4 --config config/sim-lab.yaml
 	$(BIN)/robotd bench --report docs/bench.md --json docs/bench.json
 	$(BIN)/robotd readme README.md
 

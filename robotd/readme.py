@@ -85,6 +85,8 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "results": _file("docs/results/results.md"),
     "scorecard": _file("docs/scorecard/sim/summary.md"),
     "scorecard-lab": _file("docs/scorecard/sim-lab/summary.md"),
+    "scorecard-heldout": _file("docs/scorecard/sim-heldout/summary.md"),
+    "scorecard-lab-heldout": _file("docs/scorecard/sim-lab-heldout/summary.md"),
     "bench": _file("docs/bench.md"),
 }
 
