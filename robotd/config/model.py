@@ -337,10 +337,10 @@ class EkfConfig:
     )
     adaptive_process_noise: bool = setting(
         True,
-        "Scale the odometry noise (odom_*_sigma_m, *_heading_sigma_rad, which are then the prior) by a factor learnt "
-        "from the whiteness of the innovations, within [process_noise_scale_min, process_noise_scale_max], while the "
-        "fixes are judged independent: a flat floor earns a filter that averages more fixes, and a covariance that "
-        "says so. It settles within about 30 s of driving.",
+        "Scale the odometry noise (odom_*_sigma_m, *_heading_sigma_rad, which are then the prior) by the factor that"
+        " makes the fixes likeliest (a bank of shadow filters, one per candidate), within [process_noise_scale_min, "
+        "process_noise_scale_max], while the fixes are judged independent: a flat floor earns a filter that averages "
+        "more fixes, and a covariance that says so.",
     )
     process_noise_scale_min: float = setting(
         0.01,

@@ -14,8 +14,8 @@ Theory of operation
   by their NIS (chi-square, 2 dof); rejected fixes that keep coming for `recovery_min_s` and agree with each other once
   the odometry motion is removed re-seed the position (the robot was carried, or the filter drifted). The IPS noise is
   estimated from the median of recent innovations, robust to outliers, between two bounds. The odometry noise is the
-  configuration's times a scale learnt from the whiteness of consecutive innovations (robotd.estimation.process_noise)
-  while the fixes are judged independent.
+  configuration's times the scale that makes the fixes likeliest for a bank of shadow filters
+  (robotd.estimation.process_noise) while the fixes are judged independent.
 - The heading is checked once the robot has driven `heading_align_m` (robotd.estimation.heading): the odometry track is
   rotated onto the fixes (a least-squares rotation); when that rotation disagrees with the filter, the filter takes it.
   An unknown initial heading therefore costs one short drive, not a lost robot.
@@ -213,7 +213,12 @@ class Estimator:
         self._process_noise: ProcessNoiseScale | None = None  # off: the configured noise, and no work per fix
         if c.adaptive_process_noise:
             start = 1.0 if noise is None else noise.process_noise_scale
-            self._process_noise = ProcessNoiseScale(c.process_noise_scale_min, c.process_noise_scale_max, start)
+            self._process_noise = ProcessNoiseScale(
+                c.process_noise_scale_min,
+                c.process_noise_scale_max,
+                start,
+                position_var_per_m=0.5 * (control_noise.lin2 + control_noise.lat2),
+            )
             self._predictor.scale_noise(self._process_noise.value)
         if judged:
             self._fix_gate.trust_quieter_fixes(calibration.persistent_fix_var)
@@ -420,7 +425,7 @@ class Estimator:
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
         if self._process_noise is not None:
-            self._learn_process_noise(self._process_noise, verdict, t_meas, inn)
+            self._learn_process_noise(self._process_noise, verdict, t_meas, inn, r)
         if verdict is Verdict.ACCEPTED and self._calibrator is not None:
             self._calibrate(stated, x, y, timed=timed)
         if aligner.enabled and track.t and track.dist[-1] >= aligner.next_fit:
@@ -432,24 +437,24 @@ class Estimator:
         )
 
     def _learn_process_noise(
-        self, scale: ProcessNoiseScale, verdict: Verdict, t_meas: float, inn: ekf.Innovation
+        self, scale: ProcessNoiseScale, verdict: Verdict, t_meas: float, inn: ekf.Innovation, r: float
     ) -> None:
-        """Give an accepted fix's innovation to the process noise scale (any other verdict breaks the pairs); use
-        the scale when it moved."""
+        """Give an accepted fix's innovation (of fix noise variance r) to the process noise scale (any other verdict
+        restarts its shadows); use the scale when it moved."""
         if verdict is not Verdict.ACCEPTED:
             scale.forget()
             return
         calibration = self._calibration
-        # persistent fix errors make innovations persist whatever the gain: learn only from fixes that a whole
+        # fix errors that persist look like odometry drift to every shadow: learn only from fixes that a whole
         # window judged independent (a heading fit's few residuals can miss it), and drop what was learnt from
         # fixes judged correlated after all
         if calibration.fix_correlation > 0.0 and scale.reset():
             self._predictor.scale_noise(scale.value)
         independent = calibration.windows > 0 and calibration.fix_correlation == 0.0
         learn = independent and self.modes.heading_known
-        _, pose, dist = self._track.newest(t_meas)
+        _, _, dist = self._track.newest(t_meas)
         s = 0.5 * (inn.s_xx + inn.s_yy)
-        if scale.on_innovation(t_meas, (inn.nu_x, inn.nu_y), s, (dist, pose[2]), learn=learn):
+        if scale.on_innovation((inn.nu_x, inn.nu_y), s, r, dist, learn=learn):
             self._predictor.scale_noise(scale.value)
 
     @property

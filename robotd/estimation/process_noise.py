@@ -1,131 +1,156 @@
-"""The process noise learnt from the fixes: one scale on the configured odometry noise, from the innovations' whiteness.
+"""The process noise learnt from the fixes: one scale on the configured odometry noise, the likeliest for a bank of
+shadow filters that differ only in that scale and in the fix noise. Pure (numpy).
 
 Theory of operation: the configured odometry noise (`odom_*_sigma_m`, `*_heading_sigma_rad`) is a prior for a typical
-floor; a robot on a flat, grippy floor drifts far less, one on a rough floor more. The innovations' sizes cannot tell
-which, since the IPS noise estimate (robotd.estimation.fixgate) absorbs whatever the prediction leaves over. Their
-*sequence* can (Mehra's whiteness test): with the right gain the innovations of consecutive fixes are uncorrelated;
-a process noise too large makes the filter chase each fix's noise, so the next innovation undoes the last (negative
-correlation); one too small lets odometry drift go unfollowed, so innovations persist (positive correlation). Each
-innovation is paired with every one of the SPAN_S before it: odometry drift is slow (a floor, a traction bias), and a
-filter that trusts odometry more corrects it more slowly, so short lags alone would miss it and keep lowering the
-scale. The scale moves in log space by a small step times the summed correlation, bounded, and so settles where the
-innovations are white. Fix errors that persist on their own (multipath, judged by the calibration's windows) also
-make innovations persist whatever the gain: the scale then goes back to its prior, for it cannot be told from them.
-The step itself adapts (Kesten's rule): it starts large, so that a wrong prior is left within about 30 s, and shrinks
-each time the summed correlation of a block of updates changes sign, for the scale then oscillates about where the
-innovations are white; blocks that agree in sign several times running grow it back (the floor changed).
-Pure.
+floor; a robot on a flat, grippy floor drifts far less, one on a rough floor more. A filter whose process noise is
+right predicts each fix with the right uncertainty, so over a run of fixes its innovations are the likeliest: the
+multiple-model estimate (Magill), the likelihood `robotd tune` maximises over whole logs, here online. Running
+robotd's filter once per candidate would cost a filter each; instead each candidate is a shadow that rides on it: the
+position alone, per axis (the two axes alike), moved by the same odometry, so it keeps only its offset from robotd's
+position and its variance. Between two fixes a shadow's variance grows by what robotd's grew through the heading, the
+scales and the rest (robotd's growth less its own position noise at the scale in use), plus the shadow's scale times
+the configured position noise of the distance driven; at a fix it has its own innovation (robotd's less its offset),
+gain and likelihood. The shadows also differ in the fix noise they assume, a grid about the noise at their start: a
+fix noise estimate a little off would otherwise pass for process noise (too small a one makes every innovation look
+like drift). The scale is the posterior mean of its log over the bank, with a log-normal prior about where it started
+(PRIOR_SIGMA) and a memory of a few hundred fixes (FORGET), so that a floor that changes is followed.
+
+It learns only from fixes the caller judges fit (independent, the heading known) and only when the robot moved since
+the fix before: at rest the odometry adds no noise, and the shadows could not differ. The robotd filter before this
+used the innovations' whiteness (Mehra): when the fixes' noise dwarfs the odometry's drift between two of them, the
+correlation of consecutive innovations says little about the process noise, and on a flat floor the scale took
+minutes to leave its prior, with the covariance twice as wide as the error meanwhile.
 """
 
 from __future__ import annotations
 
 import math
-from collections import deque
 
-STEP = 0.03  # log-scale change per unit of summed correlation while the scale is leaving its prior: it settles
-# within about 30 s of driving (on the flat-floor virtual robot it is a tenth of the prior by then; 0.006 was still
-# at 0.4 after 47 s). Symmetric: the sum is heavy-tailed, and unequal steps up and down ran the scale to its upper
-# bound on white innovations
-STEP_SETTLED = 0.006  # the smallest step, reached once the sign keeps changing: held at STEP, the scale's log spread
-# by 0.9-1.0 over minutes of config/sim.yaml's square and touched both bounds; 0.006 alone kept it within 0.3
-BLOCK = 24  # learning updates per block whose summed correlation's sign is watched (2 s of fixes at 12 Hz)
-SHRINK = 0.8  # the step's factor at a change of sign, and its inverse after GROW_AFTER blocks of one sign: on white
-GROW_AFTER = 4  # innovations a change comes every other block and such a run every eighth, so the step shrinks to
-# STEP_SETTLED within about a minute, while a scale leaving its prior sees one sign and keeps STEP
-LAGS = 128  # each new innovation is paired with at most this many before it, within SPAN_S
-SPAN_S = 8.0  # short lags see the fixes' noise chased, long ones the odometry's drift left unfollowed: both count
-MIN_MOTION_M = 0.005  # no pair when the robot hardly moved since the fix before: at rest the odometry adds no noise
-MIN_TURN_RAD = 0.02
-CLIP = 3.0  # normalised innovations are clipped to this size: one wild fix cannot throw the scale
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+
+LOG_SCALE_STEP = 0.5  # the bank's grid in log scale, bounds included: neighbours at most a factor 1.65 apart (the
+# posterior mean lies between)
+# the fix noise variances the shadows assume, as factors on the one at their start: up to 3.3x either way
+LOG_FIX_NOISE_FACTORS = np.arange(-4, 5) * 0.3
+# of the log scale about where it started: the configuration within a factor 4.5 at one sigma. Wider (3.0) let the
+# rough floor's heading drift, not a random walk of the position, pull the scale below the honest one (config/sim.yaml
+# seeds 4-9: 5 of 19 logs with the truth inside the 95 % ellipse less than 0.85 of the time); narrower (1.0) left
+# flat floors' covariance wide for longer
+PRIOR_SIGMA = 1.5
+FIX_NOISE_PRIOR_SIGMA = 1.0  # of the log of the fix noise's factor: the estimate in use is usually close
+FORGET = 0.995  # each learning fix's weight on the next: a memory of about 200 fixes (15-50 s of driving)
+NIS_CAP = 13.8  # a fix's NIS (per shadow) counts at most as at the 0.999 gate: an outlier must not decide the scale
+MIN_MOTION_M = 0.005  # no learning when the robot hardly moved since the fix before
 
 
 class ProcessNoiseScale:
     """The multiplier of the configured odometry noise variances, within [low, high] (low <= 1 <= high, as the
     configuration requires), learnt from accepted fixes; `start` (bounded) until learnt: 1, the configuration itself,
-    or what a run before learnt."""
+    or what a run before learnt.
 
-    def __init__(self, low: float, high: float, start: float = 1.0) -> None:
+    `position_var_per_m`: the configured odometry noise's position variance per axis and metre driven, at scale 1.
+    """
+
+    def __init__(self, low: float, high: float, start: float = 1.0, *, position_var_per_m: float) -> None:
         self.low = low
         self.high = high
         self.value = min(max(start, low), high) if math.isfinite(start) else 1.0
-        self.step = STEP  # the log-scale change per unit of summed correlation (Kesten's rule, see the docstring)
-        self._block = (0, 0.0)  # learning updates in the current block, and their summed correlation
-        self._sign = 0.0  # of the last whole block's summed correlation (0: none yet)
-        self._run = 0  # blocks of that sign in a row
-        self.pairs = 0  # pairs of innovations learnt from
-        self._window: deque[tuple[float, float, float, float]] = deque()  # t, wx, wy, |w|^2 of the last SPAN_S
-        self._sum = (0.0, 0.0, 0.0)  # of wx, wy, |w|^2 over the window: each new innovation costs O(1)
-        self._odometry = (math.nan, math.nan)  # distance travelled and heading at the newest innovation
+        self.position_var_per_m = position_var_per_m
+        span = math.log(high) - math.log(low)
+        log_scales = np.linspace(math.log(low), math.log(high), max(math.ceil(span / LOG_SCALE_STEP), 1) + 1)
+        grid_scale, grid_fix = np.meshgrid(log_scales, LOG_FIX_NOISE_FACTORS, indexing="ij")
+        self._log_scale: FloatArray = grid_scale.ravel()
+        self._scale: FloatArray = np.exp(self._log_scale)
+        self._fix_factor: FloatArray = np.exp(grid_fix.ravel())
+        self._log_fix_factor: FloatArray = grid_fix.ravel()
+        self.learnt = 0  # fixes learnt from
+        self._start_bank(self.value)
+
+    def _start_bank(self, start: float) -> None:
+        """The bank with nothing learnt: the prior about `start`, no shadows yet."""
+        self._log_prior: FloatArray = -0.5 * (
+            ((self._log_scale - math.log(start)) / PRIOR_SIGMA) ** 2
+            + (self._log_fix_factor / FIX_NOISE_PRIOR_SIGMA) ** 2
+        )
+        self._log_likelihood: FloatArray = np.zeros_like(self._log_scale)
+        self._fix_var: FloatArray | None = None  # each shadow's fix noise variance: a grid about the first fix's
+        self.forget()
 
     def reset(self) -> bool:
-        """Back to the prior, 1, forgetting the innovations; returns whether the scale changed."""
+        """Back to the prior, 1, forgetting what was learnt; returns whether the scale changed."""
         changed = self.value != 1.0
         self.value = 1.0
-        self.step, self._block, self._sign, self._run = STEP, (0, 0.0), 0.0, 0
-        self.forget()
+        self._start_bank(1.0)
         return changed
 
     def forget(self) -> None:
-        """The next innovation starts no pair (a seed, a recovery or a rejected fix came between)."""
-        self._window.clear()
-        self._sum = (0.0, 0.0, 0.0)
+        """The shadows start afresh from robotd's filter at the next fix (a seed, a recovery or a rejected fix came
+        between: the offsets were of a position that is no longer robotd's)."""
+        n = len(self._scale)
+        self._offset_x: FloatArray = np.zeros(n)
+        self._offset_y: FloatArray = np.zeros(n)
+        self._var: FloatArray | None = None  # each shadow's position variance per axis after the last fix
+        self._filter_var = 0.0  # robotd's, after the last fix
+        self._distance = 0.0
 
-    def on_innovation(
-        self, t: float, nu: tuple[float, float], s: float, odometry: tuple[float, float], *, learn: bool
-    ) -> bool:
-        """An accepted fix's innovation nu of predicted per-axis variance s, measured at t with the odometry's
-        (distance travelled, heading) then; learn only when `learn` (fixes judged independent, heading known).
-        Returns whether the scale changed."""
-        if s <= 0.0:
+    def on_innovation(self, nu: tuple[float, float], s: float, r: float, distance: float, *, learn: bool) -> bool:
+        """An accepted fix's innovation nu, with robotd's predicted variance per axis s of which r is the fix noise,
+        at `distance` driven (the odometry's); learn only when `learn`. Returns whether the scale changed."""
+        predicted = max(s - r, 0.0)  # robotd's position variance per axis before the fix
+        gain = predicted / s  # robotd's, per axis (its 2x2 gain with the axes alike)
+        after = predicted * (1.0 - gain)
+        fix_var = self._fix_var
+        if self._var is None or fix_var is None:  # the shadows start as robotd's filter is after this fix
+            if fix_var is None:
+                self._fix_var = r * self._fix_factor
+            self._var = np.full(len(self._scale), after)
+            self._filter_var, self._distance = after, distance
             return False
-        inv = 1.0 / math.sqrt(s)
-        wx, wy = nu[0] * inv, nu[1] * inv
-        energy = wx * wx + wy * wy
-        if energy > CLIP * CLIP:
-            shrink = CLIP / math.sqrt(energy)
-            wx, wy, energy = wx * shrink, wy * shrink, CLIP * CLIP
-        window = self._window
-        sx, sy, se = self._sum
-        while window and (t - window[0][0] > SPAN_S or len(window) >= LAGS):
-            old = window.popleft()
-            sx, sy, se = sx - old[1], sy - old[2], se - old[3]
-        if not window:
-            sx = sy = se = 0.0  # no rounding carried from one run of pairs to the next
-        dist, heading = odometry
-        moved = dist - self._odometry[0] >= MIN_MOTION_M or abs(heading - self._odometry[1]) >= MIN_TURN_RAD
-        self._odometry = odometry
+        driven = max(distance - self._distance, 0.0)
+        self._distance = distance
+        noise = self.position_var_per_m * driven
+        # robotd's growth through the heading, the scales and the rest: its own, less its position noise at the
+        # scale in use; every shadow grows by it, and by its own scale's position noise
+        rest = max(predicted - self._filter_var - self.value * noise, 0.0)
+        var = self._scale * noise
+        var += self._var
+        var += rest
+        total = var + fix_var  # each shadow's S per axis
+        nu_x = nu[0] - self._offset_x
+        nu_y = nu[1] - self._offset_y
         changed = False
-        if learn and moved and window and t > window[-1][0]:
-            # the summed correlation of this innovation with each one of the window, over their mean size
-            mean_energy = (se + energy) / (len(window) + 1)
-            if mean_energy > 0.0:
-                correlation = (wx * sx + wy * sy) / mean_energy
-                self.pairs += len(window)
-                value = min(max(self.value * math.exp(self.step * correlation), self.low), self.high)
-                self._adapt_step(correlation)
-                changed = value != self.value
-                self.value = value
-        window.append((t, wx, wy, energy))
-        self._sum = (sx + wx, sy + wy, se + energy)
+        if learn and driven >= MIN_MOTION_M:
+            nis = nu_x * nu_x
+            nis += nu_y * nu_y
+            nis /= total
+            np.minimum(nis, NIS_CAP, out=nis)
+            log_likelihood = self._log_likelihood
+            log_likelihood *= FORGET
+            log_likelihood -= np.log(total)
+            log_likelihood -= 0.5 * nis
+            self.learnt += 1
+            weight = log_likelihood + self._log_prior
+            weight -= weight.max()
+            np.exp(weight, out=weight)
+            value = math.exp(float(np.dot(weight, self._log_scale)) / float(weight.sum()))
+            value = min(max(value, self.low), self.high)
+            changed = value != self.value
+            self.value = value
+        shadow_gain = var / total
+        # each shadow moves by its own correction, robotd's by its own: the offset changes by the difference
+        nu_x *= shadow_gain
+        nu_x -= gain * nu[0]
+        self._offset_x += nu_x
+        nu_y *= shadow_gain
+        nu_y -= gain * nu[1]
+        self._offset_y += nu_y
+        var -= var * shadow_gain
+        self._var = var
+        self._filter_var = after
         return changed
-
-    def _adapt_step(self, correlation: float) -> None:
-        """Count one update's correlation into the block; at the block's end, shrink the step on a change of sign
-        and grow it back after GROW_AFTER blocks of one sign."""
-        n, total = self._block[0] + 1, self._block[1] + correlation
-        if n < BLOCK:
-            self._block = (n, total)
-            return
-        self._block = (0, 0.0)
-        sign = math.copysign(1.0, total)
-        if self._sign not in (0.0, sign):
-            self.step = max(self.step * SHRINK, STEP_SETTLED)
-            self._run = 1
-        else:
-            self._run += 1
-            if self._run >= GROW_AFTER:
-                self.step = min(self.step / SHRINK, STEP)
-        self._sign = sign
 
 
 __all__ = ["ProcessNoiseScale"]
