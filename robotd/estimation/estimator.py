@@ -445,12 +445,15 @@ class Estimator:
             scale.forget()
             return
         calibration = self._calibration
-        # fix errors that persist look like odometry drift to every shadow: learn only from fixes that a whole
-        # window judged independent (a heading fit's few residuals can miss it), and drop what was learnt from
-        # fixes judged correlated after all
+        # fix errors that persist look like odometry drift to every shadow: learn only from fixes judged independent,
+        # by a window or, before the first one closes, by a heading fit, and drop what was learnt from fixes judged
+        # correlated after all (a heading fit's few residuals can miss what a window finds; meanwhile persistent
+        # errors could only have raised the scale). Waiting for the first window left the start, a quarter of a
+        # one-minute run, on the configured noise
         if calibration.fix_correlation > 0.0 and scale.reset():
             self._predictor.scale_noise(scale.value)
-        independent = calibration.windows > 0 and calibration.fix_correlation == 0.0
+        judged = calibration.windows > 0 or (self._calibrator is not None and self._calibrator.judged)
+        independent = judged and calibration.fix_correlation == 0.0
         learn = independent and self.modes.heading_known
         _, _, dist = self._track.newest(t_meas)
         s = 0.5 * (inn.s_xx + inn.s_yy)

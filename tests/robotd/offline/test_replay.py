@@ -21,6 +21,7 @@ from robotd.logs.sensorlog import SensorLog, Truth, read_log
 from robotd.offline import librsf
 from robotd.offline.estimates import read_estimates
 from robotd.offline.replay import BASELINES, format_table, replay, write_outputs
+from robotd.sim.world import scenario_params
 
 LIBRSF = SHARED / "datasets" / "librsf_labyrinth_uwb"
 
@@ -261,6 +262,17 @@ def test_a_flat_floor_earns_a_smaller_process_noise_than_a_rough_one_and_a_small
     assert learnt.consistency["ekf"].inside_95 >= 0.85  # smaller, and still honest
     rough = sim_config(ips_noise_m=0.02)
     assert replay(simulated(rough, 2, loops=2), rough).process_noise_scale > learnt.process_noise_scale
+
+
+def test_the_process_noise_is_learnt_before_the_first_calibration_window_closes() -> None:
+    flat = sim_config(traction_mean=1.0, traction_wheel_spread=0.004, floor_amplitude=0.005, ips_noise_m=0.02)
+    log = simulated(flat, 2)
+    driving = log.events[0].t + 2.0 * scenario_params(flat.sim).pause_s  # the scenario opens with a rest
+    head = replay(SensorLog(log.meta, [e for e in log.events if e.t <= driving + 4.0]), flat)
+    assert head.calibration is not None
+    assert head.calibration.windows == 0  # short of the first window's travel
+    # the heading's fit judged the fixes independent after a shorter drive: the scale has left the prior by then
+    assert head.process_noise_scale < 0.5
 
 
 def test_replay_starts_from_a_calibration_file_and_refuses_a_damaged_one(
