@@ -49,6 +49,7 @@ def learnt(true_scale: float, fixes: int, *, told_fix_var: float = FIX_VAR) -> l
 
 
 def geometric_mean(values: list[float]) -> float:
+    """The mean in log space, where scales are judged."""
     return math.exp(statistics.fmean(math.log(v) for v in values))
 
 
