@@ -207,7 +207,7 @@ class Estimator:
             0,
         )
         self._fix_gate = FixGate(c, self.counters, self.modes)
-        judged = self._calibrator is not None and self._calibrator.judged  # a saved calibration judged the fixes
+        judged = self._fixes_judged  # by a saved calibration
         if not judged:
             noise = None  # noise learnt before the fixes were judged may be a shared error's agreement
         self._process_noise: ProcessNoiseScale | None = None  # off: the configured noise, and no work per fix
@@ -452,13 +452,18 @@ class Estimator:
         # one-minute run, on the configured noise
         if calibration.fix_correlation > 0.0 and scale.reset():
             self._predictor.scale_noise(scale.value)
-        judged = calibration.windows > 0 or (self._calibrator is not None and self._calibrator.judged)
-        independent = judged and calibration.fix_correlation == 0.0
+        independent = self._fixes_judged and calibration.fix_correlation == 0.0
         learn = independent and self.modes.heading_known
         _, _, dist = self._track.newest(t_meas)
         s = 0.5 * (inn.s_xx + inn.s_yy)
         if scale.on_innovation((inn.nu_x, inn.nu_y), s, r, dist, learn=learn):
             self._predictor.scale_noise(scale.value)
+
+    @property
+    def _fixes_judged(self) -> bool:
+        """Whether the fixes' correlation is known: a calibration window (this run's or a saved one's) or, before
+        the first, a heading fit has judged them (robotd.estimation.calibration.Calibrator.judged)."""
+        return self._calibrator is not None and self._calibrator.judged
 
     @property
     def learnt_noise(self) -> LearntNoise:
