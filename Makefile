@@ -16,13 +16,16 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/robotd demo --out out/demo
 
+# The libRSF Labyrinth UWB dataset beside the repository: real odometry for the experiment and the scorecards.
+LIBRSF := ../shared/datasets/librsf_labyrinth_uwb
+
 # Regenerates the README's figures: the offline experiment, the scorecards, the benchmarks, then the README's generated
 # blocks.
 docs: $(STAMP)
-	$(BIN)/robotd experiment square --loops 3 --seeds 10 --out docs/results --librsf ../shared/datasets/librsf_labyrinth_uwb
-	$(BIN)/robotd scorecard --out docs/scorecard/sim --librsf ../shared/datasets/librsf_labyrinth_uwb
+	$(BIN)/robotd experiment square --loops 3 --seeds 10 --out docs/results --librsf $(LIBRSF)
+	$(BIN)/robotd scorecard --out docs/scorecard/sim --librsf $(LIBRSF)
 	$(BIN)/robotd scorecard --out docs/scorecard/sim-lab --config config/sim-lab.yaml
-	$(BIN)/robotd scorecard --out docs/scorecard/sim-heldout --seeds 6 --first-seed 4 --librsf ../shared/datasets/librsf_labyrinth_uwb
+	$(BIN)/robotd scorecard --out docs/scorecard/sim-heldout --seeds 6 --first-seed 4 --librsf $(LIBRSF)
 	$(BIN)/robotd scorecard --out docs/scorecard/sim-lab-heldout --seeds 6 --first-seed 4 --config config/sim-lab.yaml
 	$(BIN)/robotd bench --report docs/bench.md --json docs/bench.json
 	$(BIN)/robotd readme README.md
