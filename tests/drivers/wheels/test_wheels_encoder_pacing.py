@@ -63,16 +63,18 @@ def test_a_stream_of_small_flushes_is_read_in_paced_batches_with_every_count_and
     async def main(selector: CountingSelector) -> None:
         source = PigpioEncoders(encoders, PigpiodConfig(port=server.port))
         task = asyncio.create_task(source.run(published.append))
-        await eventually(lambda: source.connected)
-        server.lose_reports(3)  # lost in the middle of a batch: the sequence gap still shows
-        passes, started = selector.passes, time.monotonic()
-        feeder = feed_in_flushes(server, encoders, flushes, spacing_s)
-        await asyncio.to_thread(feeder.join)  # one pass when it ends: this test does not poll meanwhile
-        elapsed, passes = time.monotonic() - started, selector.passes - passes
-        await eventually(lambda: source.counters.reports + 3 == 4 * flushes)
-        await eventually(lambda: published[-1].ticks == source.ticks)
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
+        try:
+            await eventually(lambda: source.connected)
+            server.lose_reports(3)  # lost in the middle of a batch: the sequence gap still shows
+            passes, started = selector.passes, time.monotonic()
+            feeder = feed_in_flushes(server, encoders, flushes, spacing_s)
+            await asyncio.to_thread(feeder.join)  # one pass when it ends: this test does not poll meanwhile
+            elapsed, passes = time.monotonic() - started, selector.passes - passes
+            await eventually(lambda: source.counters.reports + 3 == 4 * flushes)
+            await eventually(lambda: published[-1].ticks == source.ticks)
+        finally:  # a failure leaves no connection open for a later test's garbage collection to report
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
         # At 50 publications a second the loop passes about 50 times a second, one per publication (polls included);
         # reading each flush as it arrives would pass once per flush, 500 times a second here.
         assert passes <= 2 * encoders.publish_rate_hz * elapsed + 10, (passes, elapsed)
@@ -93,18 +95,20 @@ def test_at_rest_the_source_waits_for_an_edge_and_publishes_it_at_once() -> None
     async def main(selector: CountingSelector) -> None:
         source = PigpioEncoders(encoders, PigpiodConfig(port=server.port))
         task = asyncio.create_task(source.run(published.append))
-        await eventually(lambda: source.connected)
-        await eventually(lambda: source.wakeups > IDLE_AFTER_QUIET)  # settled at rest
-        passes, wakeups = selector.passes, source.wakeups
-        await asyncio.sleep(idle_s)  # this test's own sleep: one pass
-        passes, wakeups = selector.passes - passes, source.wakeups - wakeups
-        # at rest only the keep-alive publishes (every IDLE_KEEPALIVE_S); at the publication rate it would be 100
-        assert wakeups <= idle_s / IDLE_KEEPALIVE_S + 2, wakeups
-        assert passes <= idle_s / IDLE_KEEPALIVE_S + 6, passes
-        drive_wheels(server, encoders, [[1], [], [], []])
-        await eventually(lambda: published[-1].ticks[0] == 1)  # an edge after a rest is read and published
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
+        try:
+            await eventually(lambda: source.connected)
+            await eventually(lambda: source.wakeups > IDLE_AFTER_QUIET)  # settled at rest
+            passes, wakeups = selector.passes, source.wakeups
+            await asyncio.sleep(idle_s)  # this test's own sleep: one pass
+            passes, wakeups = selector.passes - passes, source.wakeups - wakeups
+            # at rest only the keep-alive publishes (every IDLE_KEEPALIVE_S); at the publication rate it would be 100
+            assert wakeups <= idle_s / IDLE_KEEPALIVE_S + 2, wakeups
+            assert passes <= idle_s / IDLE_KEEPALIVE_S + 6, passes
+            drive_wheels(server, encoders, [[1], [], [], []])
+            await eventually(lambda: published[-1].ticks[0] == 1)  # an edge after a rest is read and published
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
 
     with VirtualPigpiod() as server:
         run_counted(main)
