@@ -79,9 +79,9 @@ class FixGate:
         self._ordered: list[float] = []  # the same, sorted
         self._prior = self.r  # the noise in use when the window began: its estimate leans on it until it fills
 
-    def judge(self, t_meas: float, inn: ekf.Innovation, r: float, *, learn: bool = True) -> Verdict:
+    def judge(self, t_meas: float, inn: ekf.Innovation, r: float, *, learn: bool = True, lower: bool = True) -> Verdict:
         """Seed, accept, gate or recover: the fix's verdict (and the counters and noise estimate that follow; the noise
-        learns from the fix only when `learn`)."""
+        learns from the fix only when `learn`, and only upwards unless `lower`)."""
         config, counters = self.config, self.counters
         if not self.modes.placed and config.seed_fixes:
             self.candidates.append((t_meas, inn.nu_x, inn.nu_y))
@@ -90,7 +90,7 @@ class FixGate:
             counters["fixes_seeded"] += 1
             return Verdict.SEEDED
         if learn and config.adaptive_ips_noise and self._samples_noise(inn, r):
-            self._learn_noise(inn, r)
+            self._learn_noise(inn, r, lower=lower)
         rejection = Verdict.GATED
         if not config.gating or self._inside_gate(inn, r):
             if not (config.confirm_far_fixes and self._unconfirmed(t_meas, inn, r)):
@@ -183,9 +183,10 @@ class FixGate:
         extra = NOISE_SAMPLE_SPREAD * r
         return ekf.mahalanobis2(inn.nu_x, inn.nu_y, inn.s_xx + extra, inn.s_xy, inn.s_yy + extra) <= self.gate
 
-    def _learn_noise(self, inn: ekf.Innovation, r: float) -> None:
+    def _learn_noise(self, inn: ekf.Innovation, r: float, *, lower: bool = True) -> None:
         """Track the IPS noise variance as the median innovation, less what the prediction accounts for, with the
-        noise in use before the window began counting as the samples it still lacks (NOISE_PRIOR_SAMPLES)."""
+        noise in use before the window began counting as the samples it still lacks (NOISE_PRIOR_SAMPLES); not below
+        the noise in use unless `lower` (a prediction wider than the truth makes the median a lower bound)."""
         predicted = 0.5 * (inn.s_xx + inn.s_yy) - r  # H P H^T per axis
         value = (inn.nu_x * inn.nu_x + inn.nu_y * inn.nu_y) / LN4 - predicted
         window, ordered = self.innovations, self._ordered
@@ -194,7 +195,8 @@ class FixGate:
         window.append(value)
         bisect.insort(ordered, value)  # the window kept sorted too: its median without sorting it at every fix
         if len(ordered) >= 5:
-            self.r = min(max(self._median_with_prior(), self.r_floor), self.config.ips_sigma_max_m**2)
+            learnt = min(max(self._median_with_prior(), self.r_floor), self.config.ips_sigma_max_m**2)
+            self.r = learnt if lower else max(learnt, self.r)
 
     def _median_with_prior(self) -> float:
         """The median of the window's samples and, for each sample it lacks of NOISE_PRIOR_SAMPLES, one at the prior."""

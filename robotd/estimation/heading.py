@@ -24,6 +24,10 @@ MAX_FIT_SIGMA_RAD = 0.15  # a fit less certain than this decides nothing about a
 # a fit trims its outliers by the median residual, which needs this many points; fewer fit untrimmed (the provisional
 # heading's first guide: the fixes have passed the gate, and its sigma says how little three points tell)
 MIN_TRIMMED_POINTS = 5
+# a robust fit's start tries rotations this far apart (5 degrees: 4 cm across at 0.5 m from a window's middle, a
+# third of the 4 sigma tolerance), then refits by least squares, trimming and taking back points this many times
+CONSENSUS_ANGLES = 72
+MAX_TRIM_PASSES = 4
 FIT_SPACING = 0.25  # of the window's travel between two fits (at 40, 65, 90 and 100 %)
 
 
@@ -213,6 +217,29 @@ def fit_rotation(oxs: list[float], oys: list[float], zxs: list[float], zys: list
     return rotation, mzx - (mox * c - moy * s), mzy - (mox * s + moy * c)
 
 
+def consensus(oxs: list[float], oys: list[float], zxs: list[float], zys: list[float], tolerance: float) -> list[int]:
+    """The indices of the points (odometry track onto fixes) that agree with the rotation, of CONSENSUS_ANGLES tried,
+    that the most points agree with (ties: the smallest median residual), each rotation with its points' median
+    translation. Agreeing is as the trimming judges: within tolerance, or within three times the smallest median
+    residual of any rotation (the fixes' own scatter, when the tolerance's noise is smaller)."""
+    track_x, track_y = np.asarray(oxs), np.asarray(oys)
+    angles = np.linspace(-math.pi, math.pi, CONSENSUS_ANGLES, endpoint=False)[:, np.newaxis]
+    c, s = np.cos(angles), np.sin(angles)
+    ex = np.asarray(zxs) - (c * track_x - s * track_y)  # one row per rotation
+    ey = np.asarray(zys) - (s * track_x + c * track_y)
+    ex -= np.median(ex, axis=1, keepdims=True)
+    ey -= np.median(ey, axis=1, keepdims=True)
+    squared = ex * ex + ey * ey
+    medians = np.median(squared, axis=1)
+    # a count, not the median alone, picks the rotation: a robot that stood still before it drove gives most of the
+    # window's points one odometry position, whose median residual every rotation shares
+    inside = squared <= max(9.0 * float(medians.min()), tolerance * tolerance)
+    counts = inside.sum(axis=1)
+    tied = np.flatnonzero(counts == counts.max())
+    best = tied[np.argmin(medians[tied])]
+    return [int(i) for i in np.flatnonzero(inside[best])]
+
+
 def trimmed_rotation_fit(
     oxs: list[float],
     oys: list[float],
@@ -229,28 +256,33 @@ def trimmed_rotation_fit(
     remain or the track is too short or too inconsistent.
     """
     count = len(oxs)
+    if count < min_points:
+        return None
     hypot = math.hypot
-    fitted_x, fitted_y = oxs, oys
-    for _ in range(3):
-        n = len(oxs)
+    # least squares from all the points can be pulled anywhere by a burst of outliers (a quarter of a window's fixes
+    # thrown metres away while the robot stood still turned a start-up fit by 1.4 rad): the trimming starts from the
+    # points of the rotation that the most fixes agree with, and may take back any point the fit then explains
+    keep = consensus(oxs, oys, zxs, zys, tolerance)
+    for _ in range(MAX_TRIM_PASSES):
+        fitted = keep
+        n = len(fitted)
         if n < min_points:
             return None
-        rotation, tx, ty = fit_rotation(oxs, oys, zxs, zys)
-        fitted_x, fitted_y = oxs, oys
+        fitted_x, fitted_y = [oxs[i] for i in fitted], [oys[i] for i in fitted]
+        rotation, tx, ty = fit_rotation(fitted_x, fitted_y, [zxs[i] for i in fitted], [zys[i] for i in fitted])
         c, s = math.cos(rotation), math.sin(rotation)
-        ex = [pzx - (tx + pox * c - poy * s) for pox, poy, pzx in zip(oxs, oys, zxs, strict=True)]
-        ey = [pzy - (ty + pox * s + poy * c) for pox, poy, pzy in zip(oxs, oys, zys, strict=True)]
-        residuals = [hypot(a, b) for a, b in zip(ex, ey, strict=True)]
-        median = sorted(residuals)[n // 2]
+        ex_all = [pzx - (tx + pox * c - poy * s) for pox, poy, pzx in zip(oxs, oys, zxs, strict=True)]
+        ey_all = [pzy - (ty + pox * s + poy * c) for pox, poy, pzy in zip(oxs, oys, zys, strict=True)]
+        residuals_all = [hypot(a, b) for a, b in zip(ex_all, ey_all, strict=True)]
+        median = sorted(residuals_all[i] for i in fitted)[n // 2]
         bound = max(3.0 * median, tolerance)
-        keep = [i for i, e in enumerate(residuals) if e <= bound]
-        if len(keep) == n:
+        keep = [i for i, e in enumerate(residuals_all) if e <= bound]
+        if keep == fitted:
             break
-        oxs, oys = [oxs[i] for i in keep], [oys[i] for i in keep]
-        zxs, zys = [zxs[i] for i in keep], [zys[i] for i in keep]
-    if len(oxs) < 0.7 * count:  # too many points off the fit: no trustworthy rotation in this window
+    if n < 0.7 * count:  # too many points off the fit: no trustworthy rotation in this window
         return None
-    n = len(fitted_x)
+    ex, ey = [ex_all[i] for i in fitted], [ey_all[i] for i in fitted]
+    residuals = [residuals_all[i] for i in fitted]
     mox, moy = sum(fitted_x) / n, sum(fitted_y) / n
     spread = 0.0  # of the fitted odometry points about their mean
     for pox, poy in zip(fitted_x, fitted_y, strict=True):
@@ -271,4 +303,13 @@ def trimmed_rotation_fit(
     return rotation, sigma, tx, ty, FixSpread(n, noise * noise, rho)
 
 
-__all__ = ["LN4", "FixSpread", "HeadingAligner", "HeadingCheck", "RotationFit", "fit_rotation", "trimmed_rotation_fit"]
+__all__ = [
+    "LN4",
+    "FixSpread",
+    "HeadingAligner",
+    "HeadingCheck",
+    "RotationFit",
+    "consensus",
+    "fit_rotation",
+    "trimmed_rotation_fit",
+]

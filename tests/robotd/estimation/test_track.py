@@ -262,3 +262,19 @@ def test_fixes_judged_correlated_keep_the_noise_the_judging_fit_saw() -> None:
     assert gate.r == pytest.approx(quiet**2, rel=0.05)
     gate.trust_quieter_fixes(1.0)  # never above the configured ceiling
     assert gate.r == pytest.approx(config.ips_sigma_max_m**2)
+
+
+def test_a_noise_learnt_while_the_heading_is_unknown_may_rise_but_not_fall() -> None:
+    # a prediction along a heading not known is wider than the truth, so the innovations less it are a lower bound
+    # of the noise: on the libRSF robot's start they took a 3 cm IPS to 5 mm within 3 s
+    gate = _gate(EkfConfig(ips_sigma_m=0.03, ips_sigma_min_m=0.005))
+    gate.trust_quieter_fixes(0.0)
+    for _ in range(40):
+        inn = ekf.Innovation(0.005 * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)
+        gate._learn_noise(inn, gate.r, lower=False)
+    assert gate.r == pytest.approx(0.03**2)
+    gate.forget()
+    for _ in range(40):
+        inn = ekf.Innovation(0.08 * math.sqrt(LN4), 0.0, gate.r, 0.0, gate.r, 0.0, 0.0, 0.0)
+        gate._learn_noise(inn, gate.r, lower=False)
+    assert gate.r == pytest.approx(0.08**2, rel=0.05)
