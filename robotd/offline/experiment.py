@@ -185,6 +185,7 @@ def run_seed(
 ) -> Run:
     """Simulate one seed of the scenario, replay its log, score it; the log is written to log_path when given."""
     from robotd.sim.offline import simulate  # noqa: PLC0415 - the simulator is only needed to make data
+    from robotd.sim.variants import replayed_with  # noqa: PLC0415 - as is its variants' configuration
 
     buffer = io.StringIO()
     simulate(config, scenario, seed, loops, buffer)
@@ -192,7 +193,7 @@ def run_seed(
     if log_path is not None:
         log_path.parent.mkdir(parents=True, exist_ok=True)
         log_path.write_text(text, encoding="utf-8")
-    return score_log(parse_lines(text.splitlines()), config, seed, keep_figures)
+    return score_log(parse_lines(text.splitlines()), replayed_with(scenario, config), seed, keep_figures)
 
 
 def run_seeds(

@@ -3,7 +3,8 @@
 Theory of operation: the filter is judged on logs it has not seen (other robots, floors and beacon timing), so no one
 scenario says whether it is right. The scorecard replays a family of logs and checks each against the targets, run by
 run, never on an average:
-- every scenario and every variant of the virtual robot (`robotd.sim.scenarios`, `robotd.sim.variants`), each seed;
+- every scenario and every variant of the virtual robot (`robotd.sim.scenarios`, `robotd.sim.variants`), each seed
+  (the `heading` variant replayed with the heading unknown, as the libRSF logs are);
 - with `librsf`, a real robot's odometry and truth (the libRSF dataset) with the virtual hedgehog's fixes of each kind
   (`robotd.sim.refix`: clean, untimed, harsh), replayed with the default filter (the heading learnt by driving).
 On each log: robotd's RMSE at most 0.9 x the best baseline's (raw fixes, the paper's EKF, the gated EKF) with a

@@ -84,6 +84,11 @@ def markdown(card: Scorecard, *, rows: bool = True) -> str:
         (
             "Every scenario and variant of the virtual robot"
             + (
+                " (`heading` put down facing any way, its filter told nothing of the heading)"
+                if any(e.family == "heading" for e in entries)
+                else ""
+            )
+            + (
                 ", and the libRSF robot's real odometry and truth with the virtual hedgehog's clean, untimed and harsh "
                 "fixes (replayed with the default filter),"
                 if any(e.family.startswith("libRSF") for e in entries)

@@ -11,6 +11,8 @@ seeded per variant, so a seed gives the same robot every time, and different see
 - `twist`: the base reports its body twist at 20 Hz (through the configured kinematics) instead of wheel ticks.
 - `diffdrive`: a differential-drive base (lx = 0: left wheels FL and RL, right FR and RR), driven forward and turning.
 - `harsh`: outlier bursts four times as often, an 8 s outage mid-run, fixes without a measurement time.
+- `heading`: the robot put down facing a direction drawn in [-pi, pi), replayed by a filter told nothing of it (the
+  default `ekf.initial_sigma`: `replayed_with`), as a recorded robot is; the baselines' guess of 0 is then wrong too.
 """
 
 from __future__ import annotations
@@ -22,11 +24,11 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 from robotd import kinematics
-from robotd.config.model import RobotdConfig
+from robotd.config.model import EkfConfig, RobotdConfig
 from robotd.logs.sensorlog import Event, IpsFix, TwistSample, Wheels
 from robotd.sim.scenarios import Scenario, ScenarioParams, random_commands, random_teleop
 
-VARIANTS = ("latency", "geometry", "slip", "twist", "diffdrive", "harsh")
+VARIANTS = ("latency", "geometry", "slip", "twist", "diffdrive", "harsh", "heading")
 TWIST_RATE_HZ = 20.0
 DIFF_LX_M = 1e-3  # the physics' wheel points need a length; the log says 0
 
@@ -92,7 +94,21 @@ def build(name: str, config: RobotdConfig, params: ScenarioParams, loops: int, s
             harsh = dataclasses.replace(sim, ips_outlier_burst_rate_per_min=4.0 * sim.ips_outlier_burst_rate_per_min)
             scenario = Scenario("harsh", base.segments, ((middle - 4.0, middle + 4.0),))
             return VariantRun(scenario, dataclasses.replace(config, sim=harsh), config, untimed_fixes=True)
+        case "heading":
+            x, y, _ = sim.initial_pose
+            facing = dataclasses.replace(sim, initial_pose=(x, y, rng.uniform(-math.pi, math.pi)))
+            return VariantRun(base, dataclasses.replace(config, sim=facing), config)
     raise ValueError(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
+
+
+def replayed_with(name: str, config: RobotdConfig) -> RobotdConfig:
+    """The configuration a scenario's or variant's log is replayed with: `config`, except that the `heading` variant's
+    filter is told nothing of the heading (its initial sigma the default's, the heading unknown)."""
+    if name != "heading":
+        return config
+    sx, sy, _ = config.ekf.initial_sigma
+    unknown = (sx, sy, EkfConfig().initial_sigma[2])
+    return dataclasses.replace(config, ekf=dataclasses.replace(config.ekf, initial_sigma=unknown))
 
 
 def logged(run: VariantRun, events: Iterator[Event]) -> Iterator[Event]:
@@ -120,4 +136,4 @@ def logged(run: VariantRun, events: Iterator[Event]) -> Iterator[Event]:
             yield event
 
 
-__all__ = ["VARIANTS", "VariantRun", "build", "logged"]
+__all__ = ["VARIANTS", "VariantRun", "build", "logged", "replayed_with"]

@@ -13,7 +13,7 @@ from robotd.estimation.modes import Verdict
 from robotd.offline.consistency import CHI2_2DOF_95, consistency, position_nees
 from robotd.offline.metrics import Trajectory
 from robotd.offline.replay import replay
-from robotd.sim.variants import VARIANTS
+from robotd.sim.variants import VARIANTS, replayed_with
 
 
 def test_nees_is_the_error_weighted_by_the_estimate_s_own_covariance() -> None:
@@ -37,7 +37,7 @@ def test_robotd_s_filter_is_honest_on_every_named_scenario(variant: str) -> None
     # not seen yet; the covariance grows with the distance driven as that scale's error does
     config = sim_config()
     for seed in (1, 2):
-        result = replay(simulated(config, seed, loops=1, scenario=variant), config)
+        result = replay(simulated(config, seed, loops=1, scenario=variant), replayed_with(variant, config))
         honesty = result.consistency["ekf"]
         assert honesty.inside_95 is not None
         assert honesty.nees_mean is not None

@@ -151,3 +151,27 @@ def test_a_run_ends_whatever_the_beacons_timing(seed: int) -> None:
     events = list(itertools.islice(run(config, scenario, seed), 100_000))
     assert len(events) < 100_000
     assert events[-1].t >= scenario.duration_s
+
+
+def test_the_heading_variant_puts_the_robot_down_facing_a_drawn_way_and_is_replayed_not_knowing_it() -> None:
+    from robotd.offline.replay import replay  # noqa: PLC0415 - only this test replays
+    from robotd.sim.variants import replayed_with  # noqa: PLC0415
+
+    config = sim_config()
+    starts = []
+    for seed in (1, 2, 3):
+        buffer = io.StringIO()
+        simulate(config, "heading", seed, 1, buffer)
+        log = parse_lines(buffer.getvalue().splitlines())
+        first = next(e for e in log.events if type(e) is Truth)
+        starts.append(first.theta)
+        told = replayed_with("heading", config)
+        assert told.ekf.initial_sigma[2] > told.ekf.unknown_heading_sigma_rad  # the filter is told nothing of it
+        assert told.ekf.initial_sigma[:2] == config.ekf.initial_sigma[:2]
+        result = replay(log, told)
+        assert result.counters["heading_realigned"] >= 1  # the heading was learnt by driving
+        truth = [e for e in log.events if type(e) is Truth]
+        assert abs(math.remainder(result.ekf.theta[-1] - truth[-1].theta, math.tau)) < 0.1
+    assert len({round(s, 3) for s in starts}) == 3
+    assert max(abs(s) for s in starts) > 0.5  # not all facing the configured 0
+    assert replayed_with("random", config) is config
