@@ -259,11 +259,9 @@ def trimmed_rotation_fit(
     if count < min_points:
         return None
     hypot = math.hypot
-    # least squares from all the points can be pulled anywhere by a burst of outliers (a quarter of a window's fixes
-    # thrown metres away while the robot stood still turned a start-up fit by 1.4 rad): the trimming starts from the
-    # points of the rotation that the most fixes agree with, and may take back any point the fit then explains
-    keep = consensus(oxs, oys, zxs, zys, tolerance)
-    for _ in range(MAX_TRIM_PASSES):
+    keep = list(range(count))
+    robust = False
+    for _ in range(MAX_TRIM_PASSES + 1):
         fitted = keep
         n = len(fitted)
         if n < min_points:
@@ -274,6 +272,14 @@ def trimmed_rotation_fit(
         ex_all = [pzx - (tx + pox * c - poy * s) for pox, poy, pzx in zip(oxs, oys, zxs, strict=True)]
         ey_all = [pzy - (ty + pox * s + poy * c) for pox, poy, pzy in zip(oxs, oys, zys, strict=True)]
         residuals_all = [hypot(a, b) for a, b in zip(ex_all, ey_all, strict=True)]
+        if not robust and max(residuals_all) > tolerance:
+            # least squares from all the points can be pulled anywhere by a burst of outliers (a quarter of a
+            # window's fixes thrown metres away while the robot stood still turned a start-up fit by 1.4 rad): with
+            # any point beyond the tolerance, the trimming starts again from the points of the rotation that the most
+            # fixes agree with, and may take back any point the fit then explains
+            robust = True
+            keep = consensus(oxs, oys, zxs, zys, tolerance)
+            continue
         median = sorted(residuals_all[i] for i in fitted)[n // 2]
         bound = max(3.0 * median, tolerance)
         keep = [i for i, e in enumerate(residuals_all) if e <= bound]
