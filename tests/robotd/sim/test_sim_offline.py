@@ -10,16 +10,18 @@ import statistics
 from pathlib import Path
 
 import pytest
-from sim_logs import sim_config
+from sim_logs import sim_config, simulated
 from sim_support import perfect_config
 
 from drivers.virtual.marvelmind import POSITION_CM
 from robotd.cli import main
 from robotd.logs.sensorlog import Command, IpsFix, IpsLost, Truth, Wheels, parse_lines, read_log
+from robotd.offline.replay import replay
 from robotd.sim.ips import Hedgehog, IpsParams
 from robotd.sim.offline import run, simulate
 from robotd.sim.scenarios import Scenario, ScenarioParams, Segment
 from robotd.sim.scenarios import build as build_scenario
+from robotd.sim.variants import replayed_with
 from robotd.sim.world import scenario_params
 
 
@@ -154,20 +156,15 @@ def test_a_run_ends_whatever_the_beacons_timing(seed: int) -> None:
 
 
 def test_the_heading_variant_puts_the_robot_down_facing_a_drawn_way_and_is_replayed_not_knowing_it() -> None:
-    from robotd.offline.replay import replay  # noqa: PLC0415 - only this test replays
-    from robotd.sim.variants import replayed_with  # noqa: PLC0415
-
     config = sim_config()
+    told = replayed_with("heading", config)
+    assert told.ekf.initial_sigma[2] > told.ekf.unknown_heading_sigma_rad  # the filter is told nothing of it
+    assert told.ekf.initial_sigma[:2] == config.ekf.initial_sigma[:2]
     starts = []
     for seed in (1, 2, 3):
-        buffer = io.StringIO()
-        simulate(config, "heading", seed, 1, buffer)
-        log = parse_lines(buffer.getvalue().splitlines())
+        log = simulated(config, seed, scenario="heading")
         first = next(e for e in log.events if type(e) is Truth)
         starts.append(first.theta)
-        told = replayed_with("heading", config)
-        assert told.ekf.initial_sigma[2] > told.ekf.unknown_heading_sigma_rad  # the filter is told nothing of it
-        assert told.ekf.initial_sigma[:2] == config.ekf.initial_sigma[:2]
         result = replay(log, told)
         assert result.counters["heading_realigned"] >= 1  # the heading was learnt by driving
         truth = [e for e in log.events if type(e) is Truth]
