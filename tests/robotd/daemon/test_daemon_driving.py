@@ -8,6 +8,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 from daemon_support import Robot, running_robot, wait_until
 
@@ -23,8 +24,13 @@ LOADED_MACHINE_S = 2.0
 
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Robot]:
-    """One virtual robot and daemon shared by the tests of this module (each leaves it at rest)."""
-    with running_robot(tmp_path_factory.mktemp("driving"), {"pose_socket": {"status_rate_hz": 5.0}}) as robot:
+    """One virtual robot and daemon shared by the tests of this module (each leaves it at rest).
+
+    Seed 1: its hedgehog has no outage in the first 20 s. The default seed 5 has a 5 s one from 3.5 s, so the metre
+    below was dead-reckoned from a heading learnt over a few fixes, and how much of it fell in the outage depended on
+    how long a busy machine took to start the daemon (the pose was then 6 cm off, inside its own covariance).
+    """
+    with running_robot(tmp_path_factory.mktemp("driving"), {"pose_socket": {"status_rate_hz": 5.0}}, seed=1) as robot:
         yield robot
 
 
@@ -54,8 +60,14 @@ def test_a_teleop_client_drives_one_metre_forward_and_the_pose_socket_shows_it_w
     travelled = math.hypot(truth["x"] - start_truth["x"], truth["y"] - start_truth["y"])
     assert travelled == pytest.approx(1.0, abs=0.1), "the robot did not drive about 1 m"
     assert truth["x"] - start_truth["x"] > 0.9, "the robot did not drive forward"
-    error = math.hypot(pose["x"] - truth["x"], pose["y"] - truth["y"])
-    assert error < 0.05, f"pose ({pose['x']:.3f}, {pose['y']:.3f}) vs truth ({truth['x']:.3f}, {truth['y']:.3f})"
+    ex, ey = pose["x"] - truth["x"], pose["y"] - truth["y"]
+    assert math.hypot(ex, ey) < 0.05, (
+        f"pose ({pose['x']:.3f}, {pose['y']:.3f}) vs truth ({truth['x']:.3f}, {truth['y']:.3f})"
+    )
+    # and the published covariance covers the error: inside its 99.9 % ellipse (chi-squared, 2 degrees of freedom)
+    cov = np.array(pose["covariance"]).reshape(3, 3)[:2, :2]
+    error = np.array([ex, ey])
+    assert float(error @ np.linalg.solve(cov, error)) < 13.8, f"error {error} outside the covariance {cov.tolist()}"
 
 
 def test_a_client_that_goes_silent_has_the_motors_at_zero_after_the_deadman_timeout(robot: Robot) -> None:
