@@ -6,7 +6,10 @@ Theory of operation, once per control period (`step`):
    ramp from standstill rather than a jump back to the old speed.
 2. Limits: the command is clamped per axis to the teleop speed limits, then scaled down as a whole (keeping its
    direction) until no wheel needs more than `wheel_max_speed_rad_s`.
-3. Slew: each axis of the set-point twist moves towards the target by at most its acceleration limit times dt.
+3. Slew: each axis of the set-point twist moves towards the target by at most its acceleration limit times dt. A
+   late step (a loop starved by a busy machine) speeds up by at most a few periods' worth, but brakes by the whole
+   time that has passed: the ramp down is where the operator expects it on the wall clock, so a stop is never
+   stretched by the machine's load (the motors held their duty meanwhile).
 4. Inverse kinematics (the exact inverse of the paper's eq. 1) turns the set-point twist into wheel speed set-points.
 5. Per wheel: duty = feed-forward (set-point / wheel_max_speed_rad_s) + PID on the measured wheel speed. The
    integral is bounded by `integral_limit` and frozen while the duty saturates in the direction of the error
@@ -38,7 +41,8 @@ ZERO_WHEELS: Wheels = (0.0, 0.0, 0.0, 0.0)
 REST = Twist(0.0, 0.0, 0.0)
 
 # A control period longer than this many nominal periods (a stalled loop) is integrated as this many: the PID must
-# not take one giant step from a stale measurement.
+# not take one giant step from a stale measurement, nor the set-point one giant step up to speed (braking is not
+# bounded: see the module docstring, step 3).
 _MAX_PERIODS_PER_STEP = 5.0
 # A stalled wheel turns at less than this fraction of its set-point in the commanded direction: a dead encoder reads 0,
 # a reversed one reads the wrong way, a blocked wheel barely creeps; a loaded but turning wheel stays well above it.
@@ -141,7 +145,8 @@ class MotionController:
         self, now: float, command: Twist | None, command_time: float | None, measured_wheel_speeds: Wheels
     ) -> ControlOutput:
         """`step`, returning the set-points and state as well as the duties."""
-        dt = self._elapsed(now)
+        elapsed = self._elapsed(now)
+        dt = min(elapsed, _MAX_PERIODS_PER_STEP * self.period_s)
         if command is None or command_time is None or not _finite_twist(command):
             return self._released(ControlState.DEADMAN)
         if now - command_time > self.teleop.deadman_timeout_s:
@@ -153,7 +158,7 @@ class MotionController:
             if not self._let_go:  # the command that was held when the wheel stalled, repeated
                 return self._motors_off(ControlState.FAULT)
             self._clear_fault()
-        self._setpoint = self._slewed(self._setpoint, target, dt)
+        self._setpoint = self._slewed(self._setpoint, target, dt, elapsed)
         if self._setpoint == REST and target == REST:
             return self._motors_off(ControlState.IDLE)
         wheel_setpoints = inverse(self.geometry, self._setpoint)
@@ -168,11 +173,11 @@ class MotionController:
         return self._last
 
     def _elapsed(self, now: float) -> float:
-        """Seconds since the previous step, bounded to a few nominal periods; the nominal period at the first."""
+        """Seconds since the previous step (never negative); the nominal period at the first."""
         previous, self._last_step = self._last_step, now
         if previous is None:
             return self.period_s
-        return min(max(now - previous, 0.0), _MAX_PERIODS_PER_STEP * self.period_s)
+        return max(now - previous, 0.0)
 
     def _motors_off(self, state: ControlState) -> ControlOutput:
         self.reset()
@@ -227,14 +232,14 @@ class MotionController:
         scale = self.control.wheel_max_speed_rad_s / fastest  # keep the direction of travel, lose some speed
         return Twist(clamped.vx * scale, clamped.vy * scale, clamped.wz * scale)
 
-    def _slewed(self, current: Twist, target: Twist, dt: float) -> Twist:
-        """`current` moved towards `target` by at most the acceleration limits over dt."""
-        linear = self.teleop.max_linear_accel_mps2 * dt
-        angular = self.teleop.max_angular_accel_rad_s2 * dt
+    def _slewed(self, current: Twist, target: Twist, dt: float, elapsed: float) -> Twist:
+        """`current` moved towards `target` by at most the acceleration limits: over dt (bounded) where an axis speeds
+        up, over the whole elapsed time where it slows down."""
+        linear, angular = self.teleop.max_linear_accel_mps2, self.teleop.max_angular_accel_rad_s2
         return Twist(
-            _towards(current.vx, target.vx, linear),
-            _towards(current.vy, target.vy, linear),
-            _towards(current.wz, target.wz, angular),
+            _slewed_axis(current.vx, target.vx, linear * dt, linear * elapsed),
+            _slewed_axis(current.vy, target.vy, linear * dt, linear * elapsed),
+            _slewed_axis(current.wz, target.wz, angular * dt, angular * elapsed),
         )
 
     def _pid(self, pid: _WheelPid, setpoint: float, measured: float, dt: float) -> float:
@@ -266,6 +271,17 @@ def _clamp(value: float, limit: float) -> float:
 
 def _towards(current: float, target: float, max_change: float) -> float:
     return current + _clamp(target - current, max_change)
+
+
+def _slewed_axis(current: float, target: float, speeding: float, braking: float) -> float:
+    """One axis towards target: by at most `braking` while its magnitude falls (towards zero, or a smaller speed the
+    same way), by at most `speeding` while it rises. A reversal brakes to zero, then speeds up the other way by what
+    is left of `speeding` (on time, braking == speeding: one limit through zero, as a plain slew)."""
+    if current == 0.0 or (target * current > 0.0 and abs(target) >= abs(current)):
+        return _towards(current, target, speeding)
+    if target * current > 0.0 or abs(current) > braking:
+        return _towards(current, target if target * current > 0.0 else 0.0, braking)
+    return _towards(0.0, target, max(speeding - abs(current), 0.0))
 
 
 def _finite_twist(twist: Twist) -> bool:

@@ -151,6 +151,38 @@ def test_stop_command_ramps_down_then_idles_with_motors_off() -> None:
     assert motion.last.duties == (0.0, 0.0, 0.0, 0.0)
 
 
+def test_a_late_step_brakes_by_the_time_that_passed_but_speeds_up_by_a_few_periods_at_most() -> None:
+    # A loop starved by a busy machine: the motors held their duty through the gap, so a stop must not be stretched
+    # by it (braking follows the wall clock), while a start must not jump to speed (speeding is bounded).
+    motion = controller()
+    period, accel = motion.period_s, motion.teleop.max_linear_accel_mps2
+    now = 0.0
+    for _ in range(50):
+        motion.step(now, Twist(0.4, 0.0, 0.0), now, AT_REST)
+        now += period
+    assert motion.last.setpoint.vx == pytest.approx(0.4)
+    # the stop arrives on time; the step after it comes 0.3 s late (16 periods since the last step, beyond the bound)
+    last_step, late = now - period, 0.3
+    motion.step(now + late, Twist(0.0, 0.0, 0.0), now, AT_REST)
+    assert motion.last.setpoint.vx == pytest.approx(0.4 - accel * (now + late - last_step))
+    motion.step(now + late + 0.1, Twist(0.0, 0.0, 0.0), now, AT_REST)
+    assert motion.last.state is ControlState.IDLE, "the stop finishes on the wall clock's ramp"
+    assert motion.last.duties == (0.0, 0.0, 0.0, 0.0)
+    start_at = now + 1.0  # a command after a pause: its step is 0.6 s after the one before
+    motion.step(start_at, Twist(0.4, 0.0, 0.0), start_at, AT_REST)
+    assert motion.last.setpoint.vx == pytest.approx(accel * 5 * period), "a late step sped up by all the time passed"
+
+
+def test_a_reversal_on_time_passes_through_zero_within_one_step() -> None:
+    motion = controller()
+    period, accel = motion.period_s, motion.teleop.max_linear_accel_mps2
+    motion.step(0.0, Twist(0.01, 0.0, 0.0), 0.0, AT_REST)  # half a step's worth of speed: the reversal crosses zero
+    before = motion.last.setpoint.vx
+    assert before == pytest.approx(0.01)
+    motion.step(period, Twist(-0.4, 0.0, 0.0), period, AT_REST)
+    assert motion.last.setpoint.vx == pytest.approx(before - accel * period)
+
+
 def test_a_broken_encoder_reading_falls_back_to_feed_forward() -> None:
     motion = controller()
     for i in range(100):
