@@ -68,9 +68,16 @@ def drive_wheels(
     return driven
 
 
-async def eventually(condition: Callable[[], bool], timeout_s: float = 15.0) -> None:
+async def eventually(
+    condition: Callable[[], bool], timeout_s: float = 15.0, state: Callable[[], object] | None = None
+) -> None:
     """Wait until `condition` holds, at most timeout_s: a bound on how long a real failure takes to show, not a
-    speed target (the virtual pigpiod's thread lagged past 3 s in a full suite with a CPU hog beside it)."""
-    async with asyncio.timeout(timeout_s):
-        while not condition():
-            await asyncio.sleep(0.005)
+    speed target (the virtual pigpiod's thread lagged past 3 s in a full suite with a CPU hog beside it). On a
+    timeout, the failure shows `state()`: whether the wait was slow or the condition can no longer hold."""
+    try:
+        async with asyncio.timeout(timeout_s):
+            while not condition():
+                await asyncio.sleep(0.005)
+    except TimeoutError:
+        shown = "" if state is None else f": {state()!r}"
+        raise AssertionError(f"not reached within {timeout_s:g} s{shown}") from None

@@ -53,7 +53,9 @@ async def test_counts_through_the_socket_are_exact_across_the_tick_wrap(decoding
             assert server.tick() < BEFORE_WRAP, "the test took 5 s to connect: the stream would be stamped in the past"
             driven = drive_wheels(server, encoders, MOVES, start=BEFORE_WRAP)
             total_edges = sum(len(m) for m in MOVES)
-            await eventually(lambda: source.counters.reports == total_edges)
+            await eventually(
+                lambda: source.counters.reports == total_edges, state=lambda: (total_edges, source.counters)
+            )
             await eventually(lambda: len(published) >= 2)
         finally:  # a failure leaves no connection open for a later test's garbage collection to report
             await stop(task)
