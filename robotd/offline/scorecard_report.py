@@ -49,6 +49,7 @@ def _row(entry: Entry) -> str:
         _figure(None if ours is None else ours.rmse_m, 4),
         _figure(None if best is None else best[0].rmse_m, 4),
         _figure(None if ours is None else ours.max_m, 3),
+        _figure(entry.run.ekf_worst_at_s, 1),
         _figure(None if best is None else best[1].max_m, 3),
         _figure(None if honesty is None else honesty.inside_95, 2),
         _figure(None if honesty is None else honesty.nees_mean, 2),
@@ -134,10 +135,10 @@ def markdown(card: Scorecard, *, rows: bool = True) -> str:
         return "\n".join(lines).rstrip() + "\n"
     lines += [
         (
-            "| log | seed | RMSE (m) | best baseline RMSE (m) | max (m) | smallest baseline max (m) | inside 95 % "
-            "| mean NEES | against the baselines | honest |"
+            "| log | seed | RMSE (m) | best baseline RMSE (m) | max (m) | max at (s) | smallest baseline max (m) "
+            "| inside 95 % | mean NEES | against the baselines | honest |"
         ),
-        "|---|--:|--:|--:|--:|--:|--:|--:|---|---|",
+        "|---|--:|--:|--:|--:|--:|--:|--:|--:|---|---|",
     ]
     lines += [_row(entry) for entry in entries]
     return "\n".join(lines) + "\n"
@@ -154,6 +155,7 @@ def as_json(card: Scorecard) -> dict[str, Any]:
                 "family": entry.family,
                 "seed": entry.seed,
                 "ekf": None if ours is None else ours.as_dict(),
+                "ekf_worst_at_s": None if entry.run.ekf_worst_at_s is None else round(entry.run.ekf_worst_at_s, 3),
                 "consistency": None if honesty is None else honesty.as_dict(),
                 "baseline_misses": entry.run.baseline_misses(),
                 "honesty_misses": entry.honesty_misses(),

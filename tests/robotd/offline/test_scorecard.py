@@ -14,7 +14,8 @@ from robotd.cli import main
 from robotd.offline.consistency import Consistency
 from robotd.offline.experiment import Run
 from robotd.offline.metrics import ErrorStats
-from robotd.offline.scorecard import Entry, geometry_check, latency_check, librsf_entries
+from robotd.offline.scorecard import Entry, Scorecard, geometry_check, latency_check, librsf_entries
+from robotd.offline.scorecard_report import as_json, markdown
 from robotd.sim import variants
 from robotd.sim.world import scenario_params
 
@@ -76,6 +77,21 @@ def test_librsf_without_its_folder_is_skipped_with_the_reason(tmp_path: Path) ->
     assert "not found" in note
 
 
+def test_a_row_says_when_robotds_largest_error_came() -> None:
+    # where a maximum falls (the drive-off, the end of a gap) says why a log misses: the card shows it, measured
+    entry = _entry(0.95, 2.0)
+    timed = dataclasses.replace(entry, run=dataclasses.replace(entry.run, ekf_worst_at_s=3.26))
+    card = Scorecard("config/sim.yaml", (1,), 1, [timed, entry], [], "")
+    header, rule, *rows = [
+        line for line in markdown(card).splitlines() if line.startswith(("| log", "|---", "| random"))
+    ]
+    at = header.split(" | ").index("max at (s)")
+    assert len(rule.split("|")) == len(header.split("|"))
+    assert rows[0].split(" | ")[at] == "3.3"
+    assert rows[1].split(" | ")[at] == "–"  # no time: no value
+    assert [log["ekf_worst_at_s"] for log in as_json(card)["logs"]] == [3.26, None]
+
+
 def test_the_command_writes_a_card_whose_verdicts_count_its_rows(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -84,6 +100,7 @@ def test_the_command_writes_a_card_whose_verdicts_count_its_rows(
     assert status == 0
     card = json.loads((tmp_path / "scorecard.json").read_text(encoding="utf-8"))
     assert [log["family"] for log in card["logs"]] == ["twist", "harsh"]
+    assert all(0.0 < log["ekf_worst_at_s"] < 60.0 for log in card["logs"])  # within the one-loop run
     assert sorted(check["target"] for check in card["calibration_checks"]) == ["geometry", "latency"]
     met = sum(1 for log in card["logs"] if not log["baseline_misses"])
     honest = sum(1 for log in card["logs"] if not log["honesty_misses"])
