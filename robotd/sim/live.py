@@ -16,7 +16,9 @@ pulled out; packets produced meanwhile are unheard), SIGUSR2 plugs it back in: a
 same configured path, as udev relinks a device that reappears. Each is ignored when already in that state.
 
 Not modelled beyond the offline simulator: edges are driven at the end of the step that produced them (up to one
-step late); the duties the daemon sets take effect at the next step.
+step late); the duties the daemon sets take effect at the next step, and a step holds the duties it read over all the
+time since the one before, so a virtual robot starved by a busy machine drives on with the old duties for as long
+as it was starved.
 """
 
 from __future__ import annotations
