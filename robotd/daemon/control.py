@@ -277,10 +277,13 @@ def _slewed_axis(current: float, target: float, speeding: float, braking: float)
     """One axis towards target: by at most `braking` while its magnitude falls (towards zero, or a smaller speed the
     same way), by at most `speeding` while it rises. A reversal brakes to zero, then speeds up the other way by what
     is left of `speeding` (on time, braking == speeding: one limit through zero, as a plain slew)."""
-    if current == 0.0 or (target * current > 0.0 and abs(target) >= abs(current)):
+    same_way = target * current > 0.0
+    if current == 0.0 or (same_way and abs(target) >= abs(current)):
         return _towards(current, target, speeding)
-    if target * current > 0.0 or abs(current) > braking:
-        return _towards(current, target if target * current > 0.0 else 0.0, braking)
+    if same_way:
+        return _towards(current, target, braking)
+    if abs(current) > braking:  # stopping or reversing, not yet through zero
+        return _towards(current, 0.0, braking)
     return _towards(0.0, target, max(speeding - abs(current), 0.0))
 
 

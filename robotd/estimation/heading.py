@@ -256,8 +256,6 @@ def trimmed_rotation_fit(
     remain or the track is too short or too inconsistent.
     """
     count = len(oxs)
-    if count < min_points:
-        return None
     hypot = math.hypot
     keep = list(range(count))
     robust = False
