@@ -10,10 +10,11 @@
   start with the heading unknown). Rejected fixes are remembered: when they keep coming for `recovery_min_s` and agree
   with each other once the odometry motion is removed (as innovations), the position is re-seeded on them (the robot
   was carried, or the filter drifted); one consistent burst of outliers is too short to do that.
-- The IPS noise variance is estimated from the median of recent innovations, less what the prediction accounts for,
-  up to ips_sigma_max_m^2; at least ips_sigma_m^2 (the configured prior) until the fixes have been judged
-  (`trust_quieter_fixes`), at least ips_sigma_min_m^2 after: consecutive fixes whose errors persist agree with each
-  other, so their innovations alone would make a correlated IPS look quieter than it is.
+- The IPS noise variance is estimated from the median of recent innovations, each scaled by the share of its
+  predicted variance that the noise in use accounts for (r / S), up to ips_sigma_max_m^2; at least ips_sigma_m^2 (the
+  configured prior) until the fixes have been judged (`trust_quieter_fixes`), at least ips_sigma_min_m^2 after:
+  consecutive fixes whose errors persist agree with each other, so their innovations alone would make a correlated
+  IPS look quieter than it is.
 - Once the fixes are judged correlated, the noise estimate is also at least the fix noise that the judging fit saw:
   the filter follows an error that persists, so innovations see only how much it changes from fix to fix (on a real
   UWB run whose fix errors of 0.15 m persist for seconds, they put the noise at 5 mm, and the covariance with it).
@@ -21,6 +22,12 @@
   is left out of that estimate: a median is robust only while outliers are fewer than half its window, and a long
   burst of them fills it (it raised R to its ceiling, after which the gate let the burst in). Each window can still
   double the sigma, so an estimate that starts too low follows a noisier IPS.
+- Why scaled, not less what the prediction accounts for (S - r, the usual covariance matching): the prediction's
+  variance is itself made with the noise in use. At rest the estimate is the mean of the fixes so far, as uncertain as
+  the noise assumed says, so S - r is off by as much as the assumed noise is, and the samples of the first seconds
+  were biased towards the wrong side (on the flat-floor virtual robot, a 2 cm IPS configured at 3 cm was learnt as
+  1.1 cm at the drive-off). The share r / S is right whichever of the two dominates S: where the fixes' averaging
+  does, S and r are off by the same factor; where the odometry does, the sample is a true one whenever r is.
 """
 
 from __future__ import annotations
@@ -75,7 +82,7 @@ class FixGate:
         self.r = self.r_floor  # the IPS noise variance in use
         self.rejected: deque[Innovation3] = deque(maxlen=256)
         self.candidates: deque[Innovation3] = deque(maxlen=config.seed_fixes)
-        self.innovations: deque[float] = deque(maxlen=31)  # |nu|^2 - (trace(S) - 2 r), for the noise estimate
+        self.innovations: deque[float] = deque(maxlen=31)  # |nu|^2 / ln 4 x r / S, for the noise estimate
         self._ordered: list[float] = []  # the same, sorted
         self._prior = self.r  # the noise in use when the window began: its estimate leans on it until it fills
 
@@ -184,11 +191,12 @@ class FixGate:
         return ekf.mahalanobis2(inn.nu_x, inn.nu_y, inn.s_xx + extra, inn.s_xy, inn.s_yy + extra) <= self.gate
 
     def _learn_noise(self, inn: ekf.Innovation, r: float, *, lower: bool = True) -> None:
-        """Track the IPS noise variance as the median innovation, less what the prediction accounts for, with the
-        noise in use before the window began counting as the samples it still lacks (NOISE_PRIOR_SAMPLES); not below
-        the noise in use unless `lower` (a prediction wider than the truth makes the median a lower bound)."""
-        predicted = 0.5 * (inn.s_xx + inn.s_yy) - r  # H P H^T per axis
-        value = (inn.nu_x * inn.nu_x + inn.nu_y * inn.nu_y) / LN4 - predicted
+        """Track the IPS noise variance as the median innovation, scaled by the share r / S of its variance that the
+        noise accounts for (module docstring), with the noise in use before the window began counting as the samples
+        it still lacks (NOISE_PRIOR_SAMPLES); not below the noise in use unless `lower` (a prediction wider than the
+        truth makes the median a lower bound)."""
+        s = 0.5 * (inn.s_xx + inn.s_yy)  # per axis
+        value = (inn.nu_x * inn.nu_x + inn.nu_y * inn.nu_y) / LN4 * (r / s)
         window, ordered = self.innovations, self._ordered
         if len(window) == window.maxlen:
             del ordered[bisect.bisect_left(ordered, window[0])]

@@ -208,6 +208,28 @@ def test_the_noise_estimate_goes_below_the_configured_sigma_only_once_the_fixes_
     assert gate.r == pytest.approx(quiet**2, rel=0.05)
 
 
+@pytest.mark.parametrize(("assumed", "true"), [(0.03, 0.02), (0.05, 0.01), (0.01, 0.03)])
+def test_the_noise_estimate_at_rest_is_the_true_noise_though_the_prediction_is_made_with_the_assumed(
+    assumed: float, true: float
+) -> None:
+    """A robot at rest: its estimate is the mean of the n fixes so far, whose variance the filter puts at r / n with
+    the noise r in use; the innovations (here each at its median) have the true noise's (1 + 1 / n)."""
+    gate = _gate(EkfConfig(ips_sigma_m=assumed, ips_sigma_min_m=0.005, ips_sigma_max_m=0.3))
+    gate.trust_quieter_fixes(0.0)
+    learnt = []
+    for n in range(1, 41):
+        r = gate.r
+        s = r + r / n
+        inn = ekf.Innovation(math.sqrt(LN4 * (true**2 + true**2 / n)), 0.0, s, 0.0, s, 0.0, 0.0, 0.0)
+        gate._learn_noise(inn, r)
+        learnt.append(math.sqrt(gate.r))
+    # once the window's samples outweigh the prior (NOISE_PRIOR_SAMPLES), every estimate is the truth: subtracting
+    # the predicted r / n instead put a 1 cm IPS assumed at 5 cm on the 5 mm floor
+    majority = NOISE_PRIOR_SAMPLES // 2 + 1
+    assert learnt[: majority - 1] == [assumed] * (majority - 1)
+    assert all(value == pytest.approx(true, rel=0.01) for value in learnt[majority - 1 :]), learnt
+
+
 def test_a_few_quiet_innovations_do_not_move_the_noise_estimate_a_majority_of_its_prior_samples_does() -> None:
     # a median of five 2-dof chi-square draws falls below 0.4x the truth one time in ten: on a real robot's run with
     # 4 Hz fixes it put a 3 cm IPS at the 5 mm floor, and the next fix, fused at 5 mm, turned the heading 34 degrees
