@@ -174,8 +174,11 @@ class PigpioEncoders:
             levels = await link.command(Cmd.BR1, unsigned=True)
             before = self._clock()
             tick = await link.command(Cmd.TICK, unsigned=True)
-            self.begin_stream(levels, tick, (before + self._clock()) / 2)
+            self.begin_stream(levels, tick, (before + self._clock()) / 2, streaming=False)
             await link.command(Cmd.NB, handle, self._mask)
+            # connected once pigpiod reports: a caller that drove edges as soon as `connected` said so, before NB
+            # reached pigpiod (a busy machine), saw none of them reported
+            self._connected = True
         except BaseException:
             self._connected = False
             if stream is not None:
@@ -186,8 +189,9 @@ class PigpioEncoders:
         self._lost.clear()
         return link
 
-    def begin_stream(self, levels: int, tick: int, monotonic_s: float) -> None:
-        """Start decoding a new stream from bank-1 `levels`, with `tick` read at `monotonic_s`.
+    def begin_stream(self, levels: int, tick: int, monotonic_s: float, *, streaming: bool = True) -> None:
+        """Start decoding a new stream from bank-1 `levels`, with `tick` read at `monotonic_s`; `connected` from now
+        when `streaming` (reports already flow), else once the caller has started them.
 
         Its sequence restarts and its edge times start a new time line; counts carry on.
         """
@@ -196,7 +200,7 @@ class PigpioEncoders:
         self._gaps.restart()
         self._tick_clock = TickClock(tick, monotonic_s)
         self._speed = EdgeTimedSpeed(len(self._wiring), stale_after_us=self._stale_after_us())
-        self._connected = True
+        self._connected = streaming
 
     async def _stay_connected(self, link: PigpioLink) -> None:
         """Re-anchor the tick map while the stream is up; when it breaks, reconnect with backoff."""

@@ -9,8 +9,8 @@ from dataclasses import replace
 import pytest
 from wheels_support import drive_wheels, eventually, wait_until
 
-from drivers.pigpiod.client import PigpiodUnavailableError
-from drivers.pigpiod.protocol import Mode, Pull
+from drivers.pigpiod.client import PigpiodUnavailableError, PigpioLink
+from drivers.pigpiod.protocol import Cmd, Mode, Pull
 from drivers.virtual.pigpiod import VirtualPigpiod
 from drivers.wheels.encoders import PigpioEncoders, WheelTicks, wiring
 from drivers.wheels.quadrature import Decoding
@@ -66,6 +66,35 @@ async def test_counts_through_the_socket_are_exact_across_the_tick_wrap(decoding
     assert source.counters.lost_reports == 0
     assert source.counters.illegal_transitions == (0, 0, 0, 0)
     assert not published[-1].degraded
+
+
+async def test_the_source_is_connected_only_once_pigpiod_reports_its_edges(monkeypatch: pytest.MonkeyPatch) -> None:
+    # a busy machine held the notify-begin command back while the source already said it was connected: a test that
+    # drove edges then saw none of them reported
+    release = asyncio.Event()
+    command = PigpioLink.command
+
+    async def held_notify_begin(
+        link: PigpioLink, cmd: int, p1: int = 0, p2: int = 0, *, extension: bytes = b"", unsigned: bool = False
+    ) -> int:
+        if cmd == Cmd.NB:
+            await release.wait()
+        return await command(link, cmd, p1, p2, extension=extension, unsigned=unsigned)
+
+    monkeypatch.setattr(PigpioLink, "command", held_notify_begin)
+    async with VirtualPigpiod() as server:
+        source = PigpioEncoders(EncodersConfig(), PigpiodConfig(port=server.port))
+        task = asyncio.create_task(source.run(lambda _: None))
+        try:
+            await eventually(lambda: len(server.notify_handles()) > 0)  # connecting: pins set, the handle open
+            await asyncio.sleep(0.1)
+            assert not source.connected
+            assert list(server.notify_handles().values()) == [0]  # nothing monitored yet
+            release.set()
+            await eventually(lambda: source.connected)
+            assert list(server.notify_handles().values()) != [0]
+        finally:
+            await stop(task)
 
 
 def _count_from(start: int, moves: list[int], decoding: str) -> int:
