@@ -337,19 +337,19 @@ class EkfConfig:
     )
     adaptive_process_noise: bool = setting(
         True,
-        "Scale the odometry noise (odom_*_sigma_m, *_heading_sigma_rad, which are then the prior) by the factor that"
-        " makes the fixes likeliest (a bank of shadow filters, one per candidate), within [process_noise_scale_min, "
-        "process_noise_scale_max], while the fixes are judged independent: a flat floor earns a filter that averages "
-        "more fixes, and a covariance that says so.",
+        "Scale the odometry noise (odom_*_sigma_m, *_heading_sigma_rad, which are then the prior) by the factors, one"
+        " on the position terms and one on the heading terms, that make the fixes likeliest (a bank of shadow filters,"
+        " one per candidate), each within [process_noise_scale_min, process_noise_scale_max], while the fixes are "
+        "judged independent: a flat floor earns a filter that averages more fixes, and a covariance that says so.",
     )
     process_noise_scale_min: float = setting(
         0.01,
-        "Smallest factor the learnt scale may put on the odometry noise variances (a flat floor's odometry drifts a "
+        "Smallest factor a learnt scale may put on the odometry noise variances (a flat floor's odometry drifts a "
         "hundredth of the default noise or less).",
         in_range(0.01, 1.0),
     )
     process_noise_scale_max: float = setting(
-        4.0, "Largest factor the learnt scale may put on the odometry noise variances.", in_range(1.0, 100.0)
+        4.0, "Largest factor a learnt scale may put on the odometry noise variances.", in_range(1.0, 100.0)
     )
     recovery_min_s: float = setting(
         1.5,

@@ -5,7 +5,7 @@ a damaged one: one WARNING line, and the configuration's values), saves it when 
 most once a minute) and on its way out. Writes go to a temporary file renamed over the old one, so a crash never
 leaves half a file. The uncertainty is saved too, and widened on load to at least a floor, so a robot changed while
 the daemon was stopped is found out again. Kept with it: the fixes' judgement (their noise and the correlation of
-their errors) and the learnt noise (the IPS noise in use, the process noise scale), so a restarted filter fuses its
+their errors) and the learnt noise (the IPS noise in use, the process noise scales), so a restarted filter fuses its
 first fixes for what they were found worth, not as independent ones at the configured noise.
 """
 
@@ -53,9 +53,11 @@ def read(path: str | Path) -> Saved:
         noise = None
         if "ips_sigma_m" in data:
             ips_sigma, scale = float(data["ips_sigma_m"]), float(data["process_noise_scale"])
-            if not (math.isfinite(ips_sigma) and ips_sigma > 0.0 and math.isfinite(scale) and scale > 0.0):
-                raise ValueError("ips_sigma_m and process_noise_scale must be positive numbers")
-            noise = LearntNoise(ips_sigma**2, scale)
+            # a file written before the heading's own scale: the position's was the heading's too
+            heading = float(data.get("heading_noise_scale", scale))
+            if not all(math.isfinite(v) and v > 0.0 for v in (ips_sigma, scale, heading)):
+                raise ValueError("ips_sigma_m, process_noise_scale and heading_noise_scale must be positive numbers")
+            noise = LearntNoise(ips_sigma**2, scale, heading)
         windows = int(data.get("windows", 0))
     except (KeyError, TypeError, AttributeError) as error:
         raise ValueError(f"not a usable {FORMAT} file ({type(error).__name__}: {error})") from error
@@ -101,7 +103,11 @@ def save(path: str | Path, calibration: Calibration, noise: LearntNoise | None =
         "fix_correlated_var": c.fix_correlated_var,
     }
     if noise is not None:
-        data |= {"ips_sigma_m": math.sqrt(noise.ips_var), "process_noise_scale": noise.process_noise_scale}
+        data |= {
+            "ips_sigma_m": math.sqrt(noise.ips_var),
+            "process_noise_scale": noise.process_noise_scale,
+            "heading_noise_scale": noise.heading_noise_scale,
+        }
     target = Path(path)
     temporary = target.with_name(target.name + ".tmp")
     temporary.write_text(json.dumps(data) + "\n", encoding="utf-8")

@@ -496,6 +496,7 @@ class Daemon:
             **estimator.counters,
             "calibration": estimator.calibration.as_dict(),
             "process_noise_scale": round(estimator.process_noise_scale, 4),
+            "heading_noise_scale": round(estimator.heading_noise_scale, 4),
             "ips_sigma_m": round(math.sqrt(estimator.learnt_noise.ips_var), 5),
         }
         return posesock.status_message(t=now, stamp=time.time(), drivers=drivers, filter_diagnostics=diagnostics)

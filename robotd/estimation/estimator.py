@@ -14,7 +14,7 @@ Theory of operation
   by their NIS (chi-square, 2 dof); rejected fixes that keep coming for `recovery_min_s` and agree with each other once
   the odometry motion is removed re-seed the position (the robot was carried, or the filter drifted). The IPS noise is
   estimated from the median of recent innovations, robust to outliers, between two bounds. The odometry noise is the
-  configuration's times the scale that makes the fixes likeliest for a bank of shadow filters
+  configuration's times the scales (position, heading) that make the fixes likeliest for a bank of shadow filters
   (robotd.estimation.process_noise) while the fixes are judged independent.
 - The heading is checked once the robot has driven `heading_align_m` (robotd.estimation.heading): the odometry track is
   rotated onto the fixes (a least-squares rotation); when that rotation disagrees with the filter, the filter takes it.
@@ -50,7 +50,7 @@ from robotd.estimation.history import (
     State,
 )
 from robotd.estimation.modes import Modes, PositionMode, Verdict
-from robotd.estimation.process_noise import ProcessNoiseScale
+from robotd.estimation.process_noise import OdometryNoise, Pose, ProcessNoiseScale, Travel
 from robotd.estimation.track import OdometryTrack, Twist3
 from robotd.estimation.wheelsteps import TickKinematics, WheelFeed
 
@@ -92,10 +92,11 @@ class PoseEstimate:
 @dataclass(frozen=True, slots=True)
 class LearntNoise:
     """The noise the filter learnt, kept across restarts beside the calibration: the IPS noise variance per axis in
-    use (m^2) and the factor on the configured odometry noise variances."""
+    use (m^2) and the factors on the configured odometry noise variances, the position terms' and the heading's."""
 
     ips_var: float
     process_noise_scale: float = 1.0
+    heading_noise_scale: float = 1.0
 
 
 class StreamPace:
@@ -212,14 +213,16 @@ class Estimator:
             noise = None  # noise learnt before the fixes were judged may be a shared error's agreement
         self._process_noise: ProcessNoiseScale | None = None  # off: the configured noise, and no work per fix
         if c.adaptive_process_noise:
-            start = 1.0 if noise is None else noise.process_noise_scale
+            starts = (1.0, 1.0) if noise is None else (noise.process_noise_scale, noise.heading_noise_scale)
             self._process_noise = ProcessNoiseScale(
                 c.process_noise_scale_min,
                 c.process_noise_scale_max,
-                start,
-                position_var_per_m=0.5 * (control_noise.lin2 + control_noise.lat2),
+                *starts,
+                noise=OdometryNoise(
+                    0.5 * (control_noise.lin2 + control_noise.lat2), control_noise.slip2, control_noise.turn2
+                ),
             )
-            self._predictor.scale_noise(self._process_noise.value)
+            self._use_noise_scales(self._process_noise)
         if judged:
             self._fix_gate.trust_quieter_fixes(calibration.persistent_fix_var)
             if noise is not None:
@@ -427,7 +430,7 @@ class Estimator:
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
         if self._process_noise is not None:
-            self._learn_process_noise(self._process_noise, verdict, t_meas, inn, r)
+            self._learn_process_noise(self._process_noise, verdict, t_meas, inn, r, (prior, anchor))
         if verdict is Verdict.ACCEPTED and self._calibrator is not None:
             self._calibrate(stated, x, y, timed=timed)
         if aligner.enabled and track.t and track.dist[-1] >= aligner.next_fit:
@@ -438,11 +441,18 @@ class Estimator:
             t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)
         )
 
-    def _learn_process_noise(
-        self, scale: ProcessNoiseScale, verdict: Verdict, t_meas: float, inn: ekf.Innovation, r: float
+    def _learn_process_noise(  # noqa: PLR0917 - the fix as on_fix has it
+        self,
+        scale: ProcessNoiseScale,
+        verdict: Verdict,
+        t_meas: float,
+        inn: ekf.Innovation,
+        r: float,
+        fused: tuple[State, Anchor],
     ) -> None:
-        """Give an accepted fix's innovation (of fix noise variance r) to the process noise scale (any other verdict
-        restarts its shadows); use the scale when it moved."""
+        """Give an accepted fix's innovation (of fix noise variance r), with the state before it and the anchor it
+        left (`fused`), to the process noise scales (any other verdict restarts their shadows); use the scales when
+        they moved."""
         if verdict is not Verdict.ACCEPTED:
             scale.forget()
             return
@@ -453,13 +463,19 @@ class Estimator:
         # errors could only have raised the scale). Waiting for the first window left the start, a quarter of a
         # one-minute run, on the configured noise
         if calibration.fix_correlation > 0.0 and scale.reset():
-            self._predictor.scale_noise(scale.value)
+            self._use_noise_scales(scale)
         independent = self._fixes_judged and calibration.fix_correlation == 0.0
         learn = independent and self.modes.heading_known
-        _, _, dist = self._track.newest(t_meas)
-        s = 0.5 * (inn.s_xx + inn.s_yy)
-        if scale.on_innovation((inn.nu_x, inn.nu_y), s, r, dist, learn=learn):
-            self._predictor.scale_noise(scale.value)
+        (px, py, pth, pp, _), anchor = fused
+        prior, posterior = Pose(px, py, pth, pp), Pose(anchor.x, anchor.y, anchor.theta, anchor.p)
+        travel = Travel(*self._track.travel_at(t_meas))
+        freeze = self._heading_frozen(t_meas)
+        if scale.on_fix(t_meas, inn, r, prior, posterior, travel, learn=learn, freeze_heading=freeze):
+            self._use_noise_scales(scale)
+
+    def _use_noise_scales(self, scale: ProcessNoiseScale) -> None:
+        """Predict with the configured odometry noise times the learnt scales."""
+        self._predictor.scale_noise(scale.value, scale.heading_value)
 
     @property
     def _fixes_judged(self) -> bool:
@@ -469,13 +485,20 @@ class Estimator:
 
     @property
     def learnt_noise(self) -> LearntNoise:
-        """The IPS noise variance and the process noise scale in use, for the next start."""
-        return LearntNoise(self._fix_gate.r, self.process_noise_scale)
+        """The IPS noise variance and the process noise scales in use, for the next start."""
+        return LearntNoise(self._fix_gate.r, self.process_noise_scale, self.heading_noise_scale)
 
     @property
     def process_noise_scale(self) -> float:
-        """The factor on the configured odometry noise variances in use (1 until learnt, and when not learnt)."""
+        """The factor on the configured odometry position noise variances in use (1 until learnt, and when not
+        learnt)."""
         return 1.0 if self._process_noise is None else self._process_noise.value
+
+    @property
+    def heading_noise_scale(self) -> float:
+        """The factor on the configured odometry heading noise variances in use (1 until learnt, and when not
+        learnt)."""
+        return 1.0 if self._process_noise is None else self._process_noise.heading_value
 
     def _calibrate(self, stated: float, x: float, y: float, *, timed: bool) -> None:
         """Give an accepted fix to the calibration; take its new values when a window's fit changed them."""
@@ -565,16 +588,18 @@ class Estimator:
 
     def _fuse(self, prior: State, t: float, z: tuple[float, float, float], inn: ekf.Innovation) -> Anchor:
         """The anchor of fix z = (zx, zy, r) fused at t into the prior."""
-        # at rest a fix says nothing about the heading; with the heading unknown the model has no heading to correct
-        if not self.modes.heading_known:
-            freeze = True
-        else:
-            u = self._track.twist_at(t) or self._pending()
-            freeze = math.hypot(u[0], u[1]) < self.config.heading_min_speed_mps
-        k = ekf.gain(prior[3], inn, freeze_heading=freeze)
+        k = ekf.gain(prior[3], inn, freeze_heading=self._heading_frozen(t))
         x, y, th, p = ekf.apply_gain(prior[0], prior[1], prior[2], prior[3], inn, z[2], k)
         sens = ekf.corrected_sensitivity(prior[4], inn, k)
         return Anchor(t, x, y, th, p, FixRecord(z[0], z[1], z[2], fused=True), sens)
+
+    def _heading_frozen(self, t: float) -> bool:
+        """Whether a fix at t leaves the heading as it is: at rest a fix says nothing about the heading; with the
+        heading unknown the model has no heading to correct."""
+        if not self.modes.heading_known:
+            return True
+        u = self._track.twist_at(t) or self._pending()
+        return math.hypot(u[0], u[1]) < self.config.heading_min_speed_mps
 
     def _seed(self, prior: State, t: float, z: tuple[float, float, float], verdict: Verdict) -> Anchor:
         """Move the beacon onto the agreeing fixes (their median innovation), forgetting the position's past."""

@@ -96,7 +96,7 @@ class Predictor:
     """
 
     def __init__(self, noise: ekf.ControlNoise, modes: Modes, *, midpoint: bool) -> None:
-        self.prior_noise = noise  # as configured: the learnt process noise scale multiplies its odometry terms
+        self.prior_noise = noise  # as configured: the learnt process noise scales multiply its odometry terms
         self.noise = noise
         self.modes = modes
         self.midpoint = midpoint
@@ -108,11 +108,12 @@ class Predictor:
         # is late by then: robotd.estimation.estimator); infinite for wheel counts, whose next sample measures the gap
         self.stale_after_s = math.inf
 
-    def scale_noise(self, factor: float) -> None:
-        """Use the configured odometry noise variances times factor (the paper's per-step terms unchanged)."""
+    def scale_noise(self, position: float, heading: float) -> None:
+        """Use the configured odometry noise variances times factors: `position` on the position terms, `heading` on
+        the heading's (the paper's per-step terms unchanged)."""
         n = self.prior_noise
         self.noise = dataclasses.replace(
-            n, lin2=n.lin2 * factor, lat2=n.lat2 * factor, slip2=n.slip2 * factor, turn2=n.turn2 * factor
+            n, lin2=n.lin2 * position, lat2=n.lat2 * position, slip2=n.slip2 * heading, turn2=n.turn2 * heading
         )
 
     def move(self, state: State, u: Twist3, dt: float) -> State:

@@ -114,6 +114,18 @@ class OdometryTrack:
             oth[i - 1] + f * (oth[i] - oth[i - 1]),
         )
 
+    def travel_at(self, t: float) -> tuple[float, float]:
+        """Distance driven and heading turned (unwrapped) since the track began, at t (linear between steps, the
+        newest past them; 0 before the first step)."""
+        if not self.t or t < self.t[0]:
+            return 0.0, 0.0
+        i = bisect.bisect_right(self.t, t)
+        dist, oth = self.dist, self.oth
+        if i >= len(self.t):
+            return dist[-1], oth[-1]
+        f = (t - self.t[i - 1]) / (self.t[i] - self.t[i - 1])
+        return dist[i - 1] + f * (dist[i] - dist[i - 1]), oth[i - 1] + f * (oth[i] - oth[i - 1])
+
     def newest(self, clock: float) -> tuple[float, tuple[float, float, float], float]:
         """Time, odometry pose and distance travelled at the newest step (the clock's start, at rest, before any)."""
         if not self.t:

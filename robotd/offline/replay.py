@@ -83,7 +83,7 @@ class ReplayResult:
     metrics: dict[str, ErrorStats | None] | None
     consistency: dict[str, Consistency]  # robotd's filter always (NIS); the paper's too with truth
     calibration: Calibration  # robotd's filter's at the end of the log
-    noise: LearntNoise  # robotd's filter's learnt noise at the end (the IPS noise in use, the process noise scale)
+    noise: LearntNoise  # robotd's filter's learnt noise at the end (the IPS noise in use, the process noise scales)
     counters: dict[str, int]
     diagnostics: list[Diagnostics]
     problems: list[str]
@@ -94,8 +94,15 @@ class ReplayResult:
 
     @property
     def process_noise_scale(self) -> float:
-        """robotd's filter's learnt factor on the configured odometry noise variances, at the end of the log."""
+        """robotd's filter's learnt factor on the configured odometry position noise variances, at the end of the
+        log."""
         return self.noise.process_noise_scale
+
+    @property
+    def heading_noise_scale(self) -> float:
+        """robotd's filter's learnt factor on the configured odometry heading noise variances, at the end of the
+        log."""
+        return self.noise.heading_noise_scale
 
 
 def robot_from_log(
@@ -287,6 +294,7 @@ def write_outputs(result: ReplayResult, out_dir: Path) -> list[Path]:
         if ekf_entry is not None:
             ekf_entry.update({f"calibration_{key}": value for key, value in result.calibration.as_dict().items()})
             ekf_entry["process_noise_scale"] = round(result.process_noise_scale, 5)
+            ekf_entry["heading_noise_scale"] = round(result.heading_noise_scale, 5)
         written.append(out_dir / "metrics.json")
         written[-1].write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
     return written
@@ -310,7 +318,10 @@ def format_table(result: ReplayResult) -> str:
     for name, honesty in result.consistency.items():
         lines.append(_consistency_line(name, honesty))
     lines.append(_calibration_line(result.calibration, result.counters))
-    lines.append(f"process noise: x{result.process_noise_scale:.3f} the configured odometry noise variances (learnt)")
+    lines.append(
+        f"process noise (learnt): x{result.process_noise_scale:.3f} the configured odometry position noise variances,"
+        f" x{result.heading_noise_scale:.3f} the heading's"
+    )
     c = result.counters
     lines.append(
         f"fixes {c['fixes']}: accepted {c['fixes_accepted']}, rejected {c['fixes_rejected']}, "

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import astuple
 from pathlib import Path
 
 import pytest
@@ -83,16 +84,16 @@ def test_the_fixes_judgement_and_the_learnt_noise_survive_a_restart(tmp_path: Pa
     path = str(tmp_path / "calibration.json")
     # a run that judged its fixes' errors to persist (a wall's echo): 0.1 m, lag-one correlation 0.8
     judged = Calibration(1.02, 1.0, 0.98, 0.05, 0.0, (0.01,) * 5, 12, 0.1**2 * 0.8, 0.8, 0.1**2)
-    calibration_store.save(path, judged, LearntNoise(0.1**2, 0.4))
+    calibration_store.save(path, judged, LearntNoise(0.1**2, 0.4, 2.5))
     saved = calibration_store.load(path)
     assert saved is not None
     assert saved.noise is not None
-    assert (saved.noise.ips_var, saved.noise.process_noise_scale) == pytest.approx((0.1**2, 0.4))
+    assert astuple(saved.noise) == pytest.approx((0.1**2, 0.4, 2.5))
     loaded = saved.calibration
     assert (loaded.fix_var, loaded.fix_correlation, loaded.fix_correlated_var) == pytest.approx((0.01, 0.8, 0.008))
     restarted = Estimator(EkfConfig(), Geometry(), (0.0, 0.0), 6800, calibration=loaded, noise=saved.noise)
     assert restarted.calibration.fix_information == pytest.approx(0.2 / 1.8)
-    assert (restarted.learnt_noise.ips_var, restarted.learnt_noise.process_noise_scale) == pytest.approx((0.01, 0.4))
+    assert astuple(restarted.learnt_noise) == pytest.approx((0.01, 0.4, 2.5))
     # started from what the run before learnt, the filter does not trust fixes that share their error from its first
     # fixes on; started from the configuration alone, the truth lies far outside its ellipse
     assert _at_rest_with_a_shared_error(saved) <= 5.991  # the 95 % ellipse, 2 dof
@@ -112,8 +113,27 @@ def test_a_file_from_before_the_noise_was_kept_loads_without_it(tmp_path: Path) 
     assert (noise.ips_var, noise.process_noise_scale) == pytest.approx((EkfConfig().ips_sigma_m ** 2, 1.0))
 
 
+def test_a_file_from_before_the_headings_noise_scale_takes_the_positions(tmp_path: Path) -> None:
+    # one scale was learnt for both then: it is where the heading's starts
+    path = tmp_path / "calibration.json"
+    calibration_store.save(str(path), Calibration(windows=2), LearntNoise(0.03**2, 0.2, 3.0))
+    data = json.loads(path.read_text())
+    del data["heading_noise_scale"]
+    path.write_text(json.dumps(data), encoding="utf-8")
+    saved = calibration_store.load(str(path))
+    assert saved is not None
+    assert saved.noise is not None
+    assert astuple(saved.noise) == pytest.approx((0.03**2, 0.2, 0.2))
+
+
 @pytest.mark.parametrize(
-    "field", [{"fix_correlation": 1.5}, {"fix_var": -1.0}, {"ips_sigma_m": 0.0, "process_noise_scale": 1.0}]
+    "field",
+    [
+        {"fix_correlation": 1.5},
+        {"fix_var": -1.0},
+        {"ips_sigma_m": 0.0, "process_noise_scale": 1.0},
+        {"heading_noise_scale": -1.0},
+    ],
 )
 def test_a_saved_judgement_out_of_range_costs_a_warning(
     tmp_path: Path, caplog: pytest.LogCaptureFixture, field: dict[str, float]

@@ -260,6 +260,7 @@ def test_a_replay_started_from_what_another_log_taught_is_calibrated_from_its_st
     assert saved.calibration.kx == pytest.approx(taught.calibration.kx)
     assert saved.noise is not None
     assert saved.noise.process_noise_scale == pytest.approx(taught.process_noise_scale)
+    assert saved.noise.heading_noise_scale == pytest.approx(taught.heading_noise_scale)
     started = replay(learner, config, saved)
     fresh = replay(learner, config)
     assert started.calibration.windows > saved.calibration.windows  # it went on learning
