@@ -30,8 +30,8 @@ used the innovations' whiteness (Mehra). In a synthetic filter whose only error 
 find a hundredth of the prior as a few hundredths within 300 fixes; but robotd's innovations also persist while its
 heading and scales are still being learnt, which the whiteness test reads as drift left unfollowed: on the flat-floor
 virtual robot (config/sim-lab.yaml, square, seed 2) it took a whole loop to bring the scale down to a tenth (the
-covariance twice as wide as the error meanwhile), while the shadows, which grow by robotd's own heading and scale
-uncertainty, got there within 3 m of driving.
+covariance twice as wide as the error meanwhile), while the shadows (then of the position alone, grown by robotd's
+own heading and scale uncertainty) got there within 3 m of driving.
 """
 
 from __future__ import annotations
