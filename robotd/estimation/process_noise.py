@@ -64,7 +64,7 @@ HEADING_PRIOR_SIGMA = 3.0
 FIX_NOISE_PRIOR_SIGMA = 1.0  # of the log of the fix noise's factor: the estimate in use is usually close
 FORGET = 0.995  # each learning fix's weight on the next: a memory of about 200 fixes (15-50 s of driving)
 NIS_CAP = 13.8  # a fix's NIS (per shadow) counts at most as at the 0.999 gate: an outlier must not decide the scale
-MIN_MOTION_M = 0.005  # no learning when the robot hardly moved since the fix before
+MIN_MOTION_M = 0.005  # the robot at rest since the fix before when it moved less: no learning, the shadows restart
 
 
 class OdometryNoise(NamedTuple):
@@ -176,7 +176,12 @@ class ProcessNoiseScale:
         if self._fix_var is None:
             self._fix_var = r * self._fix_factor
         cov = self._cov
-        if cov is None or last is None or t <= last[0]:  # the shadows start as robotd's filter is after this fix
+        driven = math.nan if last is None else travel.distance - last[2].distance
+        # the shadows start as robotd's filter is after this fix: the first, one measured before the last, or one
+        # with the robot at rest since the last, where the odometry adds no noise and the shadows could not differ
+        # (fused alike, they converge on robotd's position; starting them again costs a copy, not the bank's update,
+        # so a robot at rest costs next to nothing)
+        if cov is None or last is None or t <= last[0] or not driven >= MIN_MOTION_M:
             self._cov = np.repeat(np.asarray(posterior.p, dtype=np.float64)[:, None], len(self._log_scale), axis=1)
             self._offset[:] = 0.0
             self._last = (t, posterior, travel)
@@ -187,7 +192,6 @@ class ProcessNoiseScale:
         motion, turning, growth = self._motion, self._turning, self._growth
         _set_motion(motion, dx, dy)
         turning[0, 2], turning[1, 2] = -dy, dx
-        driven = max(travel.distance - travel_before.distance, 0.0)
         turned = abs(travel.turned - travel_before.turned)
         noise = self.noise
         position_q = noise.position_var_per_m * driven
@@ -209,7 +213,7 @@ class ProcessNoiseScale:
         changed = False
         fix_var = self._fix_var
         update = _Update(predicted, offset, inn, fix_var, self._to_u_s)
-        if learn and driven >= MIN_MOTION_M:
+        if learn:
             log_likelihood = self._log_likelihood
             log_likelihood *= FORGET
             log_likelihood -= update.log_density()
