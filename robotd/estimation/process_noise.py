@@ -113,13 +113,11 @@ class ProcessNoiseScale:
             LOG_FIX_NOISE_FACTORS,
             indexing="ij",
         )
-        self._log_scale: FloatArray = grid_position.ravel()
-        self._log_heading: FloatArray = grid_heading.ravel()
+        self._log_scales: FloatArray = np.stack([grid_position.ravel(), grid_heading.ravel()])  # (position, heading)
         self._log_fix_factor: FloatArray = grid_fix.ravel()
-        self._log_scales: FloatArray = np.stack([self._log_scale, self._log_heading])  # (position, heading) x shadows
         # each shadow's multipliers of the noise added between two fixes: its scales, and 1 for robotd's growth
         # through the scales' uncertainty and the rest (on_fix)
-        self._growth_factors: FloatArray = np.vstack([np.exp(self._log_scales), np.ones(len(self._log_scale))])
+        self._growth_factors: FloatArray = np.vstack([np.exp(self._log_scales), np.ones(self._log_scales.shape[1])])
         self._fix_factor: FloatArray = np.exp(self._log_fix_factor)
         # the small matrices of each fix, filled in place: making them anew cost more than the bank's own arithmetic
         self._motion = np.eye(6)  # P -> F P F^T on the upper triangle
@@ -135,11 +133,11 @@ class ProcessNoiseScale:
     def _start_bank(self, start: float, heading_start: float) -> None:
         """The bank with nothing learnt: the prior about where the scales start, no shadows yet."""
         self._log_prior: FloatArray = -0.5 * (
-            ((self._log_scale - math.log(start)) / PRIOR_SIGMA) ** 2
-            + ((self._log_heading - math.log(heading_start)) / HEADING_PRIOR_SIGMA) ** 2
+            ((self._log_scales[0] - math.log(start)) / PRIOR_SIGMA) ** 2
+            + ((self._log_scales[1] - math.log(heading_start)) / HEADING_PRIOR_SIGMA) ** 2
             + (self._log_fix_factor / FIX_NOISE_PRIOR_SIGMA) ** 2
         )
-        self._log_likelihood: FloatArray = np.zeros_like(self._log_scale)
+        self._log_likelihood: FloatArray = np.zeros_like(self._log_fix_factor)
         self._fix_var: FloatArray | None = None  # each shadow's fix noise variance: a grid about the first fix's
         self.forget()
 
@@ -153,7 +151,9 @@ class ProcessNoiseScale:
     def forget(self) -> None:
         """The shadows start afresh from robotd's filter at the next fix (a seed, a recovery or a rejected fix came
         between: the offsets were of a pose that is no longer robotd's)."""
-        self._offset: FloatArray = np.zeros((3, len(self._log_scale)))  # x, y, heading: each shadow's less robotd's
+        self._offset: FloatArray = np.zeros(
+            (3, len(self._log_fix_factor))
+        )  # x, y, heading: each shadow's less robotd's
         self._cov: FloatArray | None = None  # 6 x shadows: each shadow's covariance after the last fix
         self._last: tuple[float, Pose, Travel] | None = None  # the last fix's time, robotd's pose after it, travel
 
@@ -176,17 +176,17 @@ class ProcessNoiseScale:
         if self._fix_var is None:
             self._fix_var = r * self._fix_factor
         cov = self._cov
-        driven = math.nan if last is None else travel.distance - last[2].distance
         # the shadows start as robotd's filter is after this fix: the first, one measured before the last, or one
         # with the robot at rest since the last, where the odometry adds no noise and the shadows could not differ
         # (fused alike, they converge on robotd's position; starting them again costs a copy, not the bank's update,
         # so a robot at rest costs next to nothing)
-        if cov is None or last is None or t <= last[0] or not driven >= MIN_MOTION_M:
-            self._cov = np.repeat(np.asarray(posterior.p, dtype=np.float64)[:, None], len(self._log_scale), axis=1)
+        if cov is None or last is None or t <= last[0] or travel.distance - last[2].distance < MIN_MOTION_M:
+            self._cov = np.repeat(np.asarray(posterior.p, dtype=np.float64)[:, None], len(self._log_fix_factor), axis=1)
             self._offset[:] = 0.0
             self._last = (t, posterior, travel)
             return False
         _, before, travel_before = last
+        driven = travel.distance - travel_before.distance
         # the displacement since the last fix: a heading error there turns it (the motion's Jacobian in theta)
         dx, dy = prior.x - before.x, prior.y - before.y
         motion, turning, growth = self._motion, self._turning, self._growth
@@ -212,7 +212,7 @@ class ProcessNoiseScale:
         offset = turning @ self._offset
         changed = False
         fix_var = self._fix_var
-        update = _Update(predicted, offset, inn, fix_var, self._to_u_s)
+        update = _Update(predicted, offset, inn, fix_var, self._to_u_s, freeze_heading=freeze_heading)
         if learn:
             log_likelihood = self._log_likelihood
             log_likelihood *= FORGET
@@ -227,7 +227,7 @@ class ProcessNoiseScale:
             changed = value != self.value or heading_value != self.heading_value
             self.value, self.heading_value = value, heading_value
         # each shadow moves by its own correction, robotd's by its own: the offset changes by the difference
-        offset += update.correction(freeze_heading=freeze_heading)
+        offset += update.correction()
         offset[0] -= posterior.x - prior.x
         offset[1] -= posterior.y - prior.y
         offset[2] -= ekf.wrap_angle(posterior.theta - prior.theta)
@@ -284,10 +284,17 @@ _COLUMNS = np.array([0, 1, 2, 1, 2, 2])
 
 class _Update:
     """Every shadow's Kalman update at one fix: innovation, its covariance S = H P H^T + R, gain K = U S^-1 with
-    U = P H^T. Arrays are (rows, shadows)."""
+    U = P H^T, its heading row zero when the heading is frozen. Arrays are (rows, shadows)."""
 
     def __init__(
-        self, p: FloatArray, offset: FloatArray, inn: ekf.Innovation, fix_var: FloatArray, to_u_s: FloatArray
+        self,
+        p: FloatArray,
+        offset: FloatArray,
+        inn: ekf.Innovation,
+        fix_var: FloatArray,
+        to_u_s: FloatArray,
+        *,
+        freeze_heading: bool,
     ) -> None:
         self.p = p
         h02, h12 = inn.h02, inn.h12
@@ -310,8 +317,16 @@ class _Update:
             nu_x -= h02 * offset[2]
             nu_y -= h12 * offset[2]
         self.nu_x, self.nu_y = nu_x, nu_y
-        self.k0: FloatArray = np.empty(0)
-        self.k1: FloatArray = np.empty(0)
+        # K = U S^-1, S^-1 = [[s11, -s01], [-s01, s00]] / det: one column per measured axis
+        s00, s01, s11 = s / self.det
+        k0 = self.u0 * s11
+        k0 -= self.u1 * s01
+        k1 = self.u1 * s00
+        k1 -= self.u0 * s01
+        if freeze_heading:
+            k0[2] = 0.0
+            k1[2] = 0.0
+        self.k0, self.k1 = k0, k1
 
     def log_density(self) -> FloatArray:
         """-log of each shadow's likelihood of its innovation (2 dof, constants dropped; the NIS capped)."""
@@ -326,21 +341,10 @@ class _Update:
         nis *= 0.5
         return nis
 
-    def correction(self, *, freeze_heading: bool) -> FloatArray:
-        """Each shadow's state correction K nu (3 x shadows); the heading's zero when frozen."""
-        s00, s01, s11 = self.s / self.det
-        # S^-1 = [[s11, -s01], [-s01, s00]] / det
-        k0 = self.u0 * s11
-        k0 -= self.u1 * s01
-        k1 = self.u1 * s00
-        k1 -= self.u0 * s01
-        if freeze_heading:
-            k0[2] = 0.0
-            k1[2] = 0.0
-        self.k0, self.k1 = k0, k1
-        nu_x, nu_y = self.nu_x, self.nu_y
-        correction: FloatArray = k0 * nu_x
-        correction += k1 * nu_y
+    def correction(self) -> FloatArray:
+        """Each shadow's state correction K nu (3 x shadows)."""
+        correction: FloatArray = self.k0 * self.nu_x
+        correction += self.k1 * self.nu_y
         return correction
 
     def covariance(self) -> FloatArray:

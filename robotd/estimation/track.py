@@ -100,31 +100,24 @@ class OdometryTrack:
 
     def pose_at(self, t: float) -> tuple[float, float, float] | None:
         """The odometry pose at t (linear between steps, the newest past them); None before the first step."""
-        if not self.t or t < self.t[0]:
-            return None
-        i = bisect.bisect_right(self.t, t)
-        ox, oy, oth = self.ox, self.oy, self.oth
-        if i >= len(self.t):
-            return ox[-1], oy[-1], oth[-1]
-        t0, t1 = self.t[i - 1], self.t[i]
-        f = (t - t0) / (t1 - t0)
-        return (
-            ox[i - 1] + f * (ox[i] - ox[i - 1]),
-            oy[i - 1] + f * (oy[i] - oy[i - 1]),
-            oth[i - 1] + f * (oth[i] - oth[i - 1]),
-        )
+        at = self._at(t, (self.ox, self.oy, self.oth))
+        return None if at is None else (at[0], at[1], at[2])
 
     def travel_at(self, t: float) -> tuple[float, float]:
         """Distance driven and heading turned (unwrapped) since the track began, at t (linear between steps, the
         newest past them; 0 before the first step)."""
+        at = self._at(t, (self.dist, self.oth))
+        return (0.0, 0.0) if at is None else (at[0], at[1])
+
+    def _at(self, t: float, columns: tuple[list[float], ...]) -> list[float] | None:
+        """The columns at t, linear between steps, the newest past them; None before the first step."""
         if not self.t or t < self.t[0]:
-            return 0.0, 0.0
+            return None
         i = bisect.bisect_right(self.t, t)
-        dist, oth = self.dist, self.oth
         if i >= len(self.t):
-            return dist[-1], oth[-1]
+            return [column[-1] for column in columns]
         f = (t - self.t[i - 1]) / (self.t[i] - self.t[i - 1])
-        return dist[i - 1] + f * (dist[i] - dist[i - 1]), oth[i - 1] + f * (oth[i] - oth[i - 1])
+        return [column[i - 1] + f * (column[i] - column[i - 1]) for column in columns]
 
     def newest(self, clock: float) -> tuple[float, tuple[float, float, float], float]:
         """Time, odometry pose and distance travelled at the newest step (the clock's start, at rest, before any)."""
