@@ -139,22 +139,27 @@ class ProcessNoiseScale:
         )
         self._log_likelihood: FloatArray = np.zeros_like(self._log_fix_factor)
         self._fix_var: FloatArray | None = None  # each shadow's fix noise variance: a grid about the first fix's
+        # the bank as reset() leaves it: about 1 and nothing learnt (a reset at each fix of correlated ones is free)
+        self._as_reset = start == 1.0 and heading_start == 1.0
         self.forget()
 
     def reset(self) -> bool:
         """Back to the prior, 1, forgetting what was learnt; returns whether a scale changed."""
         changed = self.value != 1.0 or self.heading_value != 1.0
         self.value = self.heading_value = 1.0
-        self._start_bank(1.0, 1.0)
+        if self._as_reset:
+            self._fix_var = None
+            self.forget()
+        else:
+            self._start_bank(1.0, 1.0)
         return changed
 
     def forget(self) -> None:
         """The shadows start afresh from robotd's filter at the next fix (a seed, a recovery or a rejected fix came
         between: the offsets were of a pose that is no longer robotd's)."""
-        self._offset: FloatArray = np.zeros(
-            (3, len(self._log_fix_factor))
-        )  # x, y, heading: each shadow's less robotd's
-        self._cov: FloatArray | None = None  # 6 x shadows: each shadow's covariance after the last fix
+        self._offset: FloatArray = np.zeros((3, 0))  # x, y, heading: each shadow's less robotd's (with _cov)
+        # 6 x shadows: each shadow's covariance after the last fix; None: the shadows are robotd's filter then
+        self._cov: FloatArray | None = None
         self._last: tuple[float, Pose, Travel] | None = None  # the last fix's time, robotd's pose after it, travel
 
     def on_fix(  # noqa: PLR0917 - robotd's filter before and after the fix, as the shadows need it
@@ -175,17 +180,19 @@ class ProcessNoiseScale:
         last = self._last
         if self._fix_var is None:
             self._fix_var = r * self._fix_factor
-        cov = self._cov
         # the shadows start as robotd's filter is after this fix: the first, one measured before the last, or one
         # with the robot at rest since the last, where the odometry adds no noise and the shadows could not differ
-        # (fused alike, they converge on robotd's position; starting them again costs a copy, not the bank's update,
-        # so a robot at rest costs next to nothing)
-        if cov is None or last is None or t <= last[0] or travel.distance - last[2].distance < MIN_MOTION_M:
-            self._cov = np.repeat(np.asarray(posterior.p, dtype=np.float64)[:, None], len(self._log_fix_factor), axis=1)
-            self._offset[:] = 0.0
+        # (fused alike, they converge on robotd's position). They are made when the robot next moves, so a robot at
+        # rest costs next to nothing
+        if last is None or t <= last[0] or travel.distance - last[2].distance < MIN_MOTION_M:
+            self._cov = None
             self._last = (t, posterior, travel)
             return False
         _, before, travel_before = last
+        cov = self._cov
+        if cov is None:  # every shadow as robotd's filter was after the last fix
+            cov = np.repeat(np.asarray(before.p, dtype=np.float64)[:, None], len(self._log_fix_factor), axis=1)
+            self._offset = np.zeros((3, len(self._log_fix_factor)))
         driven = travel.distance - travel_before.distance
         # the displacement since the last fix: a heading error there turns it (the motion's Jacobian in theta)
         dx, dy = prior.x - before.x, prior.y - before.y
@@ -214,6 +221,7 @@ class ProcessNoiseScale:
         fix_var = self._fix_var
         update = _Update(predicted, offset, inn, fix_var, self._to_u_s, freeze_heading=freeze_heading)
         if learn:
+            self._as_reset = False
             log_likelihood = self._log_likelihood
             log_likelihood *= FORGET
             log_likelihood -= update.log_density()
