@@ -10,15 +10,20 @@ Theory of operation. The figures are counted by the kernel, not timed, so they h
 - CPU: user plus system time from /proc/PID/stat, as a share of one core.
 At rest: nobody commands the robot and no pose client is connected, as under `robotd sim` alone. Driving: a teleop
 client at 20 Hz, 0.3 m/s forward and back. Baselines: the targets of issue 18 (wake-ups <= 30/s at rest and
-<= 150/s driving, CPU <= 1 % at rest and <= 5 % driving).
+<= 150/s driving, CPU <= 1 % at rest and <= 5 % driving). Beside each CPU figure, the floor: a process of its own
+with an asyncio loop that does nothing but wake as often as the daemon did, measured the same way. A wake-up's cost
+is the machine's (a virtual machine's timer and scheduler exits cost more than a Pi's), and the CPU figure less the
+floor is what robotd's own work costs.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import shutil
 import statistics
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -54,6 +59,7 @@ class Rates:
     syscalls_per_s: float
     syscalls_counted_by: str
     cpu_share: float
+    floor_cpu_share: float | None = None  # of a bare asyncio loop waking as often (wakeup_floor), when measured
 
 
 def _voluntary(status: Path) -> int:
@@ -129,6 +135,42 @@ def rates(before: ProcessCounts, after: ProcessCounts, perf_count: int | None) -
     )
 
 
+# the floor's process: an asyncio loop woken by a timer `rate` times a second for `seconds`, nothing else; it prints
+# its own CPU time (user + system, the clock ticks /proc/PID/stat counts) over that interval
+_FLOOR_PROGRAM = """
+import asyncio, os, sys, time
+rate, seconds = float(sys.argv[1]), float(sys.argv[2])
+async def main():
+    loop = asyncio.get_running_loop()
+    start, before = loop.time(), os.times()
+    n = 0
+    while loop.time() - start < seconds:
+        n += 1
+        await asyncio.sleep(max(start + n / rate - loop.time(), 0.0))
+    after = os.times()
+    print((after.user + after.system - before.user - before.system) / (loop.time() - start))
+asyncio.run(main())
+"""
+
+
+def wakeup_floor(wakeups_per_s: float, seconds: float) -> float | None:
+    """The CPU share of one core that a bare asyncio loop waking `wakeups_per_s` times a second costs on this
+    machine, in a Python process of its own (the daemon's interpreter); None when it could not be measured."""
+    if wakeups_per_s <= 0.0:
+        return 0.0
+    try:
+        done = subprocess.run(  # noqa: S603 - this interpreter and a fixed program
+            [sys.executable, "-c", _FLOOR_PROGRAM, f"{wakeups_per_s}", f"{seconds}"],
+            capture_output=True,
+            text=True,
+            timeout=seconds + 30.0,
+            check=True,
+        )
+        return float(done.stdout.strip())
+    except (OSError, subprocess.SubprocessError, ValueError):
+        return None
+
+
 def phase(pid: int, seconds: float, activity: Callable[[float], None]) -> Rates:
     """The process's rates while `activity(seconds)` runs."""
     before = counts(pid)
@@ -149,7 +191,10 @@ def measure(pid: int, link: UdpLink, seconds: float, drive: Drive) -> dict[str, 
     drive(link, DRIVE_SPEED_MPS, 1.0)  # up to speed first
     driving = phase(pid, seconds, lambda s: drive(link, DRIVE_SPEED_MPS, s))
     link.send(Twist(0.0, 0.0, 0.0))
-    return {"rest": rest, "driving": driving}
+    return {
+        name: dataclasses.replace(r, floor_cpu_share=wakeup_floor(r.wakeups_per_s, seconds))
+        for name, r in (("rest", rest), ("driving", driving))
+    }
 
 
 def report(measured: dict[str, Rates]) -> dict[str, float]:
@@ -162,8 +207,10 @@ def report(measured: dict[str, Rates]) -> dict[str, float]:
             f"daemon {what}: {r.wakeups_per_s:.0f} wake-ups/s ({r.main_thread_wakeups_per_s:.0f} of the event loop's"
             f" thread; target <= {wake_target:.0f}: ratio {r.wakeups_per_s / wake_target:.2f}), "
             f"{r.syscalls_per_s:.0f} system calls/s ({r.syscalls_counted_by}), CPU {r.cpu_share * 100:.1f}% of one "
-            f"core (target <= {cpu_target * 100:.0f}%: ratio {r.cpu_share / cpu_target:.2f})"
+            f"core (target <= {cpu_target * 100:.0f}%: ratio {r.cpu_share / cpu_target:.2f})" + _floor_note(r)
         )
+        if r.floor_cpu_share is not None:
+            figures[f"{name}_floor_cpu_share"] = r.floor_cpu_share
         figures |= {
             f"{name}_wakeups_per_s": r.wakeups_per_s,
             f"{name}_loop_thread_wakeups_per_s": r.main_thread_wakeups_per_s,
@@ -171,6 +218,15 @@ def report(measured: dict[str, Rates]) -> dict[str, float]:
             f"{name}_cpu_share": r.cpu_share,
         }
     return figures
+
+
+def _floor_note(r: Rates) -> str:
+    if r.floor_cpu_share is None:
+        return "; the wake-up floor could not be measured"
+    return (
+        f"; floor {r.floor_cpu_share * 100:.1f}% (a bare asyncio loop waking {r.wakeups_per_s:.0f} times/s here), "
+        f"robotd's own work {max(r.cpu_share - r.floor_cpu_share, 0.0) * 100:.1f}%"
+    )
 
 
 def run(quick: bool, runs: int = 1) -> dict[str, float]:
@@ -202,6 +258,7 @@ def run(quick: bool, runs: int = 1) -> dict[str, float]:
                 medians[f"{name}_syscalls_per_s"],
                 "median",
                 medians[f"{name}_cpu_share"],
+                medians.get(f"{name}_floor_cpu_share"),
             )
             for name in ("rest", "driving")
         }
