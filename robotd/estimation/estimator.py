@@ -690,7 +690,8 @@ class Estimator:
 
     def pose(self, t: float | None = None) -> PoseEstimate:
         """The estimate, extrapolated with the twist in force to time t when t is later than the newest input."""
-        when, x, y, th, (vx, vy, wz), p = self._extrapolate(t)
+        when, x, y, th, p = self._extrapolate(t)
+        vx, vy, wz = self._twist_in_force()
         age = when - self._last_accept_t
         return PoseEstimate(when, x, y, th, vx, vy, wz, ekf.cov_full(p), age, self.modes.position)
 
@@ -701,12 +702,18 @@ class Estimator:
         """
         if not self.modes.placed:
             return None
-        _, x, y, th, _, p = self._extrapolate(t)
+        _, x, y, th, p = self._extrapolate(t)
         return x, y, th, p
 
-    def _extrapolate(self, t: float | None) -> tuple[float, float, float, float, Twist3, ekf.Cov]:
-        """Time, pose, twist in force and P of the newest state carried forward to t when t is later (one prediction
-        step with the twist in force: the mean as eq. 5, P as eq. 7).
+    def _twist_in_force(self) -> Twist3:
+        """The odometry's twist beyond the newest step, calibrated."""
+        raw = self._pending()
+        kx, ky, kw = self._predictor.scale
+        return raw[0] * kx, raw[1] * ky, raw[2] * kw
+
+    def _extrapolate(self, t: float | None) -> tuple[float, float, float, float, ekf.Cov]:
+        """Time, pose and P of the newest state carried forward to t when t is later (one prediction step with the
+        twist in force: the mean as eq. 5, P as eq. 7).
 
         P includes the uncertainty of the estimate's time (time_sigma_s, along the motion) and the fixes' correlated
         error (calibration.fix_correlated_var): the filter fuses fixes as if their errors were independent, which
@@ -715,21 +722,19 @@ class Estimator:
         newest_step = self._track.t[-1] if self._track.t else -math.inf
         when = max(newest_step, self._history.newest.t)
         x, y, th, p, sens = self._state_at_newest_step()
-        raw = self._pending()
-        kx, ky, kw = self._predictor.scale
-        u = (raw[0] * kx, raw[1] * ky, raw[2] * kw)
         if t is None:
             t = max(when, self._wheels.last_t)
         if t > when and math.isfinite(when):
             # the same process model as a step: the covariance grows with the motion the extrapolation assumes
             state = (x, y, th, p, sens)
             if self._track.t:
-                x, y, th, p, _ = self._history.beyond_newest(state, when, t, raw)
+                x, y, th, p, _ = self._history.beyond_newest(state, when, t, self._pending())
             else:
                 x, y, th, p, _ = self._history.move_within(state, when, t, self._pending)
             when = t
         tau = self.time_sigma_s if self._twist_pace.interval_s > 0.0 else 0.0  # per output: wheel counts skip the call
         if tau > 0.0:  # an error tau in the estimate's time is an error u * tau in its pose, along the motion
+            u = self._twist_in_force()
             c, s = math.cos(th), math.sin(th)
             ux, uy = (c * u[0] - s * u[1]) * tau, (s * u[0] + c * u[1]) * tau
             uw = u[2] * tau
@@ -738,7 +743,7 @@ class Estimator:
         shared = self._calibration.fix_correlated_var
         if shared > 0.0:
             p = (p[0] + shared, p[1], p[2], p[3] + shared, p[4], p[5])
-        return when, x, y, th, u, p
+        return when, x, y, th, p
 
 
 def _seeded(t: float, state: State, fix: FixRecord, shift: tuple[float, float]) -> Anchor:
