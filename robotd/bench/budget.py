@@ -148,7 +148,8 @@ async def main():
         n += 1
         await asyncio.sleep(max(start + n / rate - loop.time(), 0.0))
     after = os.times()
-    print((after.user + after.system - before.user - before.system) / (loop.time() - start))
+    spent = (after.user + after.system) - (before.user + before.system)  # whole clock ticks, as float seconds
+    print(max(spent, 0.0) / (loop.time() - start))
 asyncio.run(main())
 """
 
