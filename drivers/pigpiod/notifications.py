@@ -55,7 +55,8 @@ class TickClock:
         if not len(ticks):
             return np.zeros(0, dtype=np.int64)
         steps = np.empty(len(ticks), dtype=np.int64)
-        steps[0] = np.array([int(ticks[0]) - self._last_tick], dtype=np.int64).astype(np.int32)[0]
+        first = (int(ticks[0]) - self._last_tick) & 0xFFFFFFFF  # the signed 32-bit difference, in plain integers
+        steps[0] = first - (1 << 32) if first & 0x80000000 else first
         steps[1:] = (ticks[1:] - ticks[:-1]).view(np.int32)
         unwrapped = self._last_unwrapped + np.cumsum(steps)
         self._last_tick = int(ticks[-1])
