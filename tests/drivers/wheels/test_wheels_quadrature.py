@@ -168,6 +168,10 @@ def test_ticks_unwrap_across_2_to_the_32_and_map_to_the_monotonic_clock() -> Non
     clock = TickClock(tick=(1 << 32) - 1000, monotonic_s=50.0)
     unwrapped = clock.unwrap(np.array([(1 << 32) - 500, 100, 2000, 1990], dtype=np.uint32))
     assert unwrapped.tolist() == [500, 1100, 3000, 2990]  # a small step back stays a small step back
+    # a batch's first report against the batch before: across the wrap, and a small step back
+    wrapping = TickClock(tick=(1 << 32) - 10, monotonic_s=0.0)
+    assert wrapping.unwrap(np.array([5], dtype=np.uint32)).tolist() == [15]
+    assert wrapping.unwrap(np.array([(1 << 32) - 2, 7], dtype=np.uint32)).tolist() == [8, 17]
     assert clock.to_monotonic(1100) == pytest.approx(50.0011)
     assert clock.to_unwrapped(50.003) == 3000
     clock.anchor(tick=5000, monotonic_s=60.0)  # drift: the same tick now maps elsewhere
