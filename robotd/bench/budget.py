@@ -138,7 +138,7 @@ def rates(before: ProcessCounts, after: ProcessCounts, perf_count: int | None) -
 # the floor's process: an asyncio loop woken by a timer `rate` times a second for `seconds`, nothing else; it prints
 # its own CPU time (user + system, the clock ticks /proc/PID/stat counts) over that interval
 _FLOOR_PROGRAM = """
-import asyncio, os, sys, time
+import asyncio, os, sys
 rate, seconds = float(sys.argv[1]), float(sys.argv[2])
 async def main():
     loop = asyncio.get_running_loop()
