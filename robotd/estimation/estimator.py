@@ -408,7 +408,8 @@ class Estimator:
             r += (self._calibration.sigmas[3] ** 2) * ((kx * u[0]) ** 2 + (ky * u[1]) ** 2)
         # correlated fixes are fused for what they are worth: each one's variance grows by the AR(1) discount
         r /= self._calibration.fix_information
-        inn = ekf.innovation(px, py, pth, pp, x, y, r, self._offset[0], self._offset[1])
+        ox, oy = self._fused_offset
+        inn = ekf.innovation(px, py, pth, pp, x, y, r, ox, oy)
         # a prediction across a pause in the odometry is a worst case, not a variance the innovation can be set
         # against: the noise learnt from it would go to its floor. One along a heading not known is wider than the
         # truth too, but the fixes can still show that they are noisier than assumed: the noise may rise, not fall
@@ -580,7 +581,7 @@ class Estimator:
         if fix is None:
             return Anchor(old.t, x, y, th, p, None, sens)
         if fix.fused:
-            inn = ekf.innovation(x, y, th, p, fix.zx, fix.zy, fix.r, *self._offset)
+            inn = ekf.innovation(x, y, th, p, fix.zx, fix.zy, fix.r, *self._fused_offset)
             return self._fuse(state, old.t, (fix.zx, fix.zy, fix.r), inn)
         if fix.seed is not None:
             return _seeded(old.t, state, fix, fix.seed)
@@ -592,6 +593,32 @@ class Estimator:
         x, y, th, p = ekf.apply_gain(prior[0], prior[1], prior[2], prior[3], inn, z[2], k)
         sens = ekf.corrected_sensitivity(prior[4], inn, k)
         return Anchor(t, x, y, th, p, FixRecord(z[0], z[1], z[2], fused=True), sens)
+
+    @property
+    def _fused_offset(self) -> tuple[float, float]:
+        """The beacon's lever arm as fixes are fused (robot frame): while the heading is unknown, its expected value.
+
+        The heading the filter then carries is a placeholder: through it the lever arm would put the centre up to
+        twice its length off, on every fix alike. For a heading known to within sigma (the provisional heading that
+        the fixes so far give: robotd.estimation.history.Predictor) the expected lever arm is exp(-sigma^2 / 2) of
+        it, turned by the provisional correction; with none, the centre is anywhere on a circle around the beacon and
+        the filter follows the circle's centre, the beacon. What is left of the lever arm's uncertainty is in P
+        (_extrapolate); the window that finds the heading places the centre (_realign, with the whole lever arm).
+        """
+        ox, oy = self._offset
+        if self.modes.heading_known:
+            return ox, oy
+        shrink, turn = self._predictor.provisional
+        c, s = shrink * math.cos(turn), shrink * math.sin(turn)
+        return c * ox - s * oy, s * ox + c * oy
+
+    def _lever_arm_var(self) -> float:
+        """The variance per axis of the lever arm's part of the position while the heading is unknown (0 when
+        known): of a vector of length |o| at a heading known to within sigma, |o|^2 (1 - exp(-sigma^2)) / 2."""
+        if self.modes.heading_known:
+            return 0.0
+        shrink = self._predictor.provisional[0]
+        return 0.5 * (self._offset[0] ** 2 + self._offset[1] ** 2) * (1.0 - shrink * shrink)
 
     def _heading_frozen(self, t: float) -> bool:
         """Whether a fix at t leaves the heading as it is: at rest a fix says nothing about the heading; with the
@@ -715,9 +742,10 @@ class Estimator:
         """Time, pose and P of the newest state carried forward to t when t is later (one prediction step with the
         twist in force: the mean as eq. 5, P as eq. 7).
 
-        P includes the uncertainty of the estimate's time (time_sigma_s, along the motion) and the fixes' correlated
+        P includes the uncertainty of the estimate's time (time_sigma_s, along the motion), the fixes' correlated
         error (calibration.fix_correlated_var): the filter fuses fixes as if their errors were independent, which
-        averages away an error they share; the estimate cannot be surer than that.
+        averages away an error they share; the estimate cannot be surer than that, and while the heading is unknown
+        the lever arm's (_fused_offset): every fix shares it.
         """
         newest_step = self._track.t[-1] if self._track.t else -math.inf
         when = max(newest_step, self._history.newest.t)
@@ -741,6 +769,7 @@ class Estimator:
             xx, xy, xt, yy, yt, tt = p
             p = (xx + ux * ux, xy + ux * uy, xt + ux * uw, yy + uy * uy, yt + uy * uw, tt + uw * uw)
         shared = self._calibration.fix_correlated_var
+        shared += self._lever_arm_var()
         if shared > 0.0:
             p = (p[0] + shared, p[1], p[2], p[3] + shared, p[4], p[5])
         return when, x, y, th, p

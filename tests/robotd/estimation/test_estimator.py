@@ -422,6 +422,40 @@ def test_with_the_heading_unknown_the_fixes_steer_the_position_until_a_window_gi
     assert worst[3.14] < worst[0.1] / 2  # a confident wrong heading drives the estimate away until it is re-aligned
 
 
+@pytest.mark.parametrize("facing", [2.5, -1.2])
+def test_with_the_heading_unknown_a_beacon_off_the_centre_stays_within_its_own_covariance(facing: float) -> None:
+    # the beacon 0.2 m ahead of the centre; put down facing `facing` while the filter's placeholder says 0: through
+    # the placeholder the lever arm would put the centre 2 x 0.2 x sin(facing / 2) off (0.38 m, 0.23 m), on every fix
+    offset = (0.2, 0.05)
+    est = Estimator(_config(initial_sigma=(1.0, 1.0, 3.14)), GEOMETRY, offset, CPR)
+    rng = random.Random(3)
+    x, y, th = 1.0, 2.0, facing
+    unknown, covered, worst = 0, 0, 0.0
+    for k in range(1, 1201):
+        t = k * 0.01
+        x += 0.3 * math.cos(th) * 0.01
+        y += 0.3 * math.sin(th) * 0.01
+        est.on_twist(t, 0.3, 0.0, 0.0)
+        if k % 8 == 0:
+            bx = x + offset[0] * math.cos(th) - offset[1] * math.sin(th) + rng.gauss(0, 0.02)
+            by = y + offset[0] * math.sin(th) + offset[1] * math.cos(th) + rng.gauss(0, 0.02)
+            est.on_fix(t, bx, by, t)
+        pose = est.pose(t)
+        if pose.state is PositionMode.INITIALISING or est.counters["heading_realigned"]:
+            continue
+        unknown += 1
+        ex, ey = pose.x - x, pose.y - y
+        xx, xy, yy = pose.cov[0], pose.cov[1], pose.cov[4]
+        nees = (ex * ex * yy - 2.0 * ex * ey * xy + ey * ey * xx) / (xx * yy - xy * xy)
+        covered += nees <= 5.99  # inside the 95 % ellipse
+        worst = max(worst, math.hypot(ex, ey))
+    assert unknown > 100, unknown  # the heading was unknown for a while: the case under test happened
+    assert covered / unknown >= 0.9, covered / unknown
+    assert worst < math.hypot(*offset) + 0.08, worst  # the beacon's circle, not twice its radius
+    assert est.counters["heading_realigned"] >= 1
+    assert math.hypot(est.pose().x - x, est.pose().y - y) < 0.05  # aligned: the lever arm places the centre again
+
+
 def test_a_burst_of_outliers_before_the_robot_drives_off_does_not_turn_its_unknown_heading() -> None:
     # config/sim-lab.yaml, random, seed 6, told nothing of the heading: a burst of echoes (1-4.6 m away) while the
     # robot stood still went into the first alignment window, whose fit then placed the robot 0.3-0.4 m off
