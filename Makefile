@@ -27,6 +27,7 @@ docs: $(STAMP)
 	$(BIN)/robotd scorecard --out docs/scorecard/sim-lab --config config/sim-lab.yaml
 	$(BIN)/robotd scorecard --out docs/scorecard/sim-heldout --seeds 6 --first-seed 4 --librsf $(LIBRSF)
 	$(BIN)/robotd scorecard --out docs/scorecard/sim-lab-heldout --seeds 6 --first-seed 4 --config config/sim-lab.yaml
+	$(BIN)/robotd scorecard --out docs/scorecard/sim-other --seeds 6 --first-seed 4 --config config/sim-other.yaml
 	$(BIN)/robotd bench --report docs/bench.md --json docs/bench.json
 	$(BIN)/robotd readme README.md
 

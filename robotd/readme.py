@@ -87,6 +87,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "scorecard-lab": _file("docs/scorecard/sim-lab/summary.md"),
     "scorecard-heldout": _file("docs/scorecard/sim-heldout/summary.md"),
     "scorecard-lab-heldout": _file("docs/scorecard/sim-lab-heldout/summary.md"),
+    "scorecard-other": _file("docs/scorecard/sim-other/summary.md"),
     "bench": _file("docs/bench.md"),
 }
 
