@@ -1,4 +1,4 @@
-"""`robotd tune LOG...`: fit the filter's noise parameters and odometry calibration to recorded logs."""
+"""`robotd tune LOG...`: fit the filter's noise parameters, odometry calibration and lever arm to recorded logs."""
 
 from __future__ import annotations
 
@@ -16,7 +16,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     """Add `robotd tune`."""
     tune = subparsers.add_parser(
         "tune",
-        help="fit the filter's noise and odometry calibration to sensor logs (no truth needed); write a YAML snippet",
+        help="fit the filter's noise, odometry calibration and the beacon's lever arm to sensor logs (no truth needed);"
+        " write a YAML snippet",
     )
     tune.add_argument("logs", nargs="+", metavar="LOG", help="sensor logs (JSON Lines)")
     tune.add_argument("--config", help="YAML configuration to start from (default: built-in defaults)")
@@ -52,6 +53,8 @@ def run_tune(args: argparse.Namespace) -> int:
     print("changed (each kept because it made the fixes more likely):" if result.changes else "nothing to change")
     for change in result.changes:
         print(f"  {change}")
+    for note in result.notes:
+        print(note)
     snippet = yaml_snippet(result)
     if args.out:
         try:

@@ -9,6 +9,18 @@ sweeps; a change is kept only when it lowers the total. The odometry scales are 
 with on each log, averaged by their precision, and the delay of fixes without a measurement time likewise. The
 filter's online process noise scale is off while fitting (the fit is what it learns, done over whole logs); the
 fitted noise is the prior the daemon's scale starts from.
+
+The beacon's lever arm (robot.ips_offset_m) is fitted the same way, before the noise and again after it: a lever arm
+measured wrong, or not declared, puts a bias on every fix that turns with the robot, which the noise would otherwise
+absorb. Only rotation shows it (driving straight, a lever arm is a constant shift that the position takes up), so it
+is fitted only on the logs whose robot turned by a quarter turn or more (MIN_TURN_RAD, the filter's heading at each
+fix): without turns a made-up lever arm gives the filter's heading a handle on the fixes, which fits their noise (a
+square driven without turning took a 16 cm lever arm that was not there). It is searched by steps in each axis,
+halved down to OFFSET_RESOLUTION_M, and kept only when it passes a likelihood-ratio test against the one the logs
+declare (2 dof at 95 %: the total negative log likelihood lower by SIGNIFICANT_NLL, each log's fixes counted for
+what their innovations' correlation leaves them worth) and differs from it by OFFSET_MIN_CHANGE_M or more (a smaller
+change is within what one log's fit can tell). The fitted lever arm is one for every log (the same robot's), in
+place of the one each log declares.
 """
 
 from __future__ import annotations
@@ -18,7 +30,10 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 from robotd.config.model import EkfConfig, RobotdConfig
+from robotd.estimation.ar1 import information, lag_one_correlation
 from robotd.estimation.estimator import Estimator
 from robotd.estimation.modes import Verdict
 from robotd.logs.sensorlog import IpsFix, IpsLost, SensorLog, TwistSample, Wheels
@@ -34,6 +49,16 @@ PARAMETERS = (
 )
 FACTORS = (0.5, 0.75, 1.33, 2.0)
 SWEEPS = 2
+OFFSET_FIRST_STEP_M = 0.08  # the lever arm's first step per axis, halved down to OFFSET_RESOLUTION_M
+OFFSET_RESOLUTION_M = 0.005
+OFFSET_LIMIT_M = 1.0  # a beacon further than this from the centre is not on the robot
+SIGNIFICANT_NLL = 3.0  # half the chi-square 95 % point for 2 dof (5.99): the lever arm's likelihood-ratio test
+# a lever arm moves a fix by its length times the turn between fixes: a robot that turned less than a quarter turn
+# shows its lever arm only through the filter's heading, whose errors a wrong lever arm can fit as well
+MIN_TURN_RAD = math.pi / 2.0
+# what one log's fit can tell: on the virtual robot's turning logs it found a lever arm 1-2.5 cm from the truth, and a
+# declared lever arm 1 cm off costs a replay a third more RMSE: a smaller change would be the fit's own error
+OFFSET_MIN_CHANGE_M = 0.02
 
 
 @dataclass(frozen=True, slots=True)
@@ -43,6 +68,8 @@ class LogFit:
     nll: float
     fixes: int
     nis_mean: float
+    turned_rad: float = 0.0  # the range of the filter's heading over the fixes (max - min, unwrapped)
+    correlation: float = 0.0  # lag-one correlation of the accepted fixes' innovations, each axis scaled by its S
 
 
 @dataclass(frozen=True, slots=True)
@@ -51,19 +78,27 @@ class TuneResult:
 
     ekf: EkfConfig
     latency_s: float | None  # learnt delay of fixes without a measurement time (None: every fix had its time)
+    ips_offset: tuple[float, float] | None  # the fitted lever arm (None: the declared one stays)
     before: list[LogFit]
     after: list[LogFit]
     changes: list[str]
+    notes: list[str] = dataclasses.field(default_factory=list)  # what was not fitted, and why
 
 
-def score(log: SensorLog, config: RobotdConfig, ekf_config: EkfConfig) -> tuple[LogFit, Estimator]:
-    """Replay one log through robotd's filter with ekf_config; the innovations' fit, and the filter at the end."""
-    geometry, offset, cpr, _ = robot_from_log(log, config)
+def score(
+    log: SensorLog, config: RobotdConfig, ekf_config: EkfConfig, offset: tuple[float, float] | None = None
+) -> tuple[LogFit, Estimator]:
+    """Replay one log through robotd's filter with ekf_config (and the beacon at `offset`, else where the log or the
+    configuration says); the innovations' fit, and the filter at the end."""
+    geometry, declared, cpr, _ = robot_from_log(log, config)
+    offset = declared if offset is None else offset
     # the fit sets the odometry noise itself: the filter's own learnt scale on it would answer for the same thing
     ekf_config = dataclasses.replace(ekf_config, adaptive_process_noise=False)
     estimator = Estimator(ekf_config, geometry, offset, cpr, default_latency_s=config.marvelmind.default_latency_s)
     nll = nis_sum = 0.0
     count = 0
+    heading = low = high = 0.0  # unwrapped, at the fixes
+    whitened: list[tuple[float, float]] = []
     for event in log.events:
         kind = type(event)
         if kind is Wheels:
@@ -80,11 +115,16 @@ def score(log: SensorLog, config: RobotdConfig, ekf_config: EkfConfig) -> tuple[
                 continue
             nis = min(d.nis, d.gate)
             nll += 0.5 * (math.log(det) + nis)
+            heading += math.remainder(estimator.pose().theta - heading, math.tau)
+            low, high = min(low, heading), max(high, heading)
+            if d.verdict is Verdict.ACCEPTED:
+                whitened.append((d.nu[0] / math.sqrt(s_xx), d.nu[1] / math.sqrt(s_yy)))
             nis_sum += nis
             count += 1
         elif kind is IpsLost:
             estimator.on_fix_lost(event.t)
-    fit = LogFit(nll / count if count else math.inf, count, nis_sum / count if count else math.nan)
+    rho = lag_one_correlation(np.array(whitened), 1.0) if whitened else 0.0
+    fit = LogFit(nll / count if count else math.inf, count, nis_sum / count if count else math.nan, high - low, rho)
     return fit, estimator
 
 
@@ -96,7 +136,19 @@ def tune(logs: Sequence[SensorLog], config: RobotdConfig) -> TuneResult:
     """Fit the noise parameters and the odometry calibration to the logs (see the module docstring)."""
     start = config.ekf
     before = [score(log, config, start)[0] for log in logs]
-    best, best_total = start, _total(before)
+    declared = robot_from_log(logs[0], config)[1]
+    turning = [log for log, fit in zip(logs, before, strict=True) if fit.turned_rad >= MIN_TURN_RAD]
+    notes: list[str] = []
+    offset = declared
+    if turning:
+        offset = _fit_offset(turning, config, start, declared)
+    else:
+        turned = max((math.degrees(fit.turned_rad) for fit in before), default=0.0)
+        notes.append(
+            f"robot.ips_offset_m not fitted: the robot turned by {turned:.0f} deg at most, and only turns show the"
+            f" beacon's lever arm (a log with a quarter turn or more would)"
+        )
+    best, best_total = start, _total([score(log, config, start, offset)[0] for log in logs])
     changes: list[str] = []
     for _ in range(SWEEPS):
         for name, low, high in PARAMETERS:
@@ -106,10 +158,18 @@ def tune(logs: Sequence[SensorLog], config: RobotdConfig) -> TuneResult:
                 if trial_value == value:
                     continue
                 trial = dataclasses.replace(best, **{name: trial_value})
-                total = _total([score(log, config, trial)[0] for log in logs])
+                total = _total([score(log, config, trial, offset)[0] for log in logs])
                 if total < best_total - 1e-6 * abs(best_total):
                     best, best_total = trial, total
                     value = trial_value
+    if turning:
+        offset = _fit_offset(turning, config, best, offset, declared)  # again, with the noise it let the fit find
+    fitted_offset = None if offset == declared else offset
+    if fitted_offset is not None:
+        changes.append(
+            f"robot.ips_offset_m: [{declared[0]:.4g}, {declared[1]:.4g}] -> [{offset[0]:.4g}, {offset[1]:.4g}]"
+            " (the fixes' bias turns with the robot: the beacon's lever arm)"
+        )
     for name, _, _ in PARAMETERS:
         old, new = getattr(start, name), getattr(best, name)
         if not math.isclose(old, new):
@@ -120,7 +180,7 @@ def tune(logs: Sequence[SensorLog], config: RobotdConfig) -> TuneResult:
     after: list[LogFit] = []
     untimed = False
     for log in logs:
-        fit, estimator = score(log, config, best)
+        fit, estimator = score(log, config, best, offset)
         after.append(fit)
         c = estimator.calibration
         untimed = untimed or estimator.counters["untimed_fixes"] > 0
@@ -135,20 +195,64 @@ def tune(logs: Sequence[SensorLog], config: RobotdConfig) -> TuneResult:
     latency = round(sums[3] / weights[3], 4) if untimed else None
     if latency is not None:
         changes.append(f"marvelmind.default_latency_s: {config.marvelmind.default_latency_s:.4g} -> {latency:.4g}")
-    return TuneResult(best, latency, before, after, changes)
+    return TuneResult(best, latency, fitted_offset, before, after, changes, notes)
+
+
+def _fit_offset(
+    logs: Sequence[SensorLog],
+    config: RobotdConfig,
+    ekf_config: EkfConfig,
+    start: tuple[float, float],
+    declared: tuple[float, float] | None = None,
+) -> tuple[float, float]:
+    """The lever arm that makes the logs' fixes most likely, searched from `start` by halving steps per axis; the
+    `declared` one (default: `start`) unless the best passes the likelihood-ratio test against it."""
+    declared = start if declared is None else declared
+
+    def fits(offset: tuple[float, float]) -> list[LogFit]:
+        return [score(log, config, ekf_config, offset)[0] for log in logs]
+
+    def total(offset: tuple[float, float]) -> float:
+        return _total(fits(offset))
+
+    best, best_total = start, total(start)
+    step = OFFSET_FIRST_STEP_M
+    while step >= OFFSET_RESOLUTION_M:
+        moved = False
+        for dx, dy in ((step, 0.0), (-step, 0.0), (0.0, step), (0.0, -step)):
+            trial = (round(best[0] + dx, 4), round(best[1] + dy, 4))
+            if math.hypot(*trial) > OFFSET_LIMIT_M:
+                continue
+            trial_total = total(trial)
+            if trial_total < best_total:
+                best, best_total, moved = trial, trial_total, True
+                break
+        if not moved:
+            step /= 2.0
+    if math.dist(best, declared) < OFFSET_MIN_CHANGE_M:
+        return declared
+    # the test counts each log's fixes for what they are worth: innovations that persist from fix to fix are fewer
+    # independent ones (robotd.estimation.ar1), and a sum over them would overstate the evidence
+    gain = sum(
+        (old.nll - new.nll) * new.fixes * information(new.correlation)
+        for old, new in zip(fits(declared), fits(best), strict=True)
+    )
+    return best if gain >= SIGNIFICANT_NLL else declared
 
 
 def yaml_snippet(result: TuneResult) -> str:
     """The configuration lines tuning changed, as YAML to paste into the configuration."""
     e = result.ekf
     lines = [
-        "# robotd tune: noise fitted by the innovations' likelihood, odometry scales by online calibration",
+        "# robotd tune: noise and lever arm by the innovations' likelihood, odometry scales by online calibration",
         "ekf:",
     ]
     lines += [f"  {name}: {getattr(e, name):.4g}" for name, _, _ in PARAMETERS]
     lines.append(f"  odometry_scale: [{e.odometry_scale[0]:.4g}, {e.odometry_scale[1]:.4g}, {e.odometry_scale[2]:.4g}]")
     if result.latency_s is not None:
         lines += ["marvelmind:", f"  default_latency_s: {result.latency_s:.4g}"]
+    if result.ips_offset is not None:
+        lines += ["robot:", f"  ips_offset_m: [{result.ips_offset[0]:.4g}, {result.ips_offset[1]:.4g}]"]
     return "\n".join(lines) + "\n"
 
 

@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
+import msgspec
 import pytest
 import yaml
 from sim_logs import sim_config, simulated, simulated_text
 
 from robotd import cli
 from robotd.config.model import RobotdConfig, parse
+from robotd.logs.sensorlog import SensorLog
 from robotd.offline.replay import replay
-from robotd.offline.tune import score, tune
+from robotd.offline.tune import score, tune, yaml_snippet
 
 
 def _overconfident(config: RobotdConfig) -> RobotdConfig:
@@ -64,3 +67,48 @@ def test_the_command_prints_what_it_changed_and_writes_a_snippet_the_config_acce
     assert parsed.ekf.odom_along_sigma_m == fitted["odom_along_sigma_m"] > 0.002
     assert parsed.ekf.odometry_scale == tuple(fitted["odometry_scale"])
     assert cli.main(["tune", str(tmp_path / "missing.jsonl")]) == 66
+
+
+def _undeclared(log: SensorLog) -> SensorLog:
+    """The log as a recorder that declared no lever arm writes it (the replay then takes the configuration's)."""
+    robot = {key: value for key, value in log.meta.robot.items() if key != "ips_offset"}
+    return SensorLog(msgspec.structs.replace(log.meta, robot=robot), log.events, log.problems, log.unknown_types, [])
+
+
+def test_a_lever_arm_left_out_of_the_configuration_is_found_on_a_turning_robot_and_fixes_a_held_out_replay() -> None:
+    truth = (0.1, 0.04)  # the beacon 10 cm ahead of the centre and 4 cm to the left; the configuration says (0, 0)
+    robot = sim_config(ips_offset_m=truth)
+    fitted_on, held_out = (_undeclared(simulated(robot, seed, loops=1, scenario="random")) for seed in (1, 2))
+    start = sim_config()
+    result = tune([fitted_on], start)
+    assert result.ips_offset is not None
+    assert math.dist(result.ips_offset, truth) < 0.02, result.ips_offset
+    assert any(change.startswith("robot.ips_offset_m: [0, 0] ->") for change in result.changes)
+    tuned = dataclasses.replace(
+        start, ekf=result.ekf, robot=dataclasses.replace(start.robot, ips_offset_m=result.ips_offset)
+    )
+    before, after = replay(held_out, start).metrics, replay(held_out, tuned).metrics
+    assert before is not None
+    assert after is not None
+    ours, theirs = after["ekf"], before["ekf"]
+    assert ours is not None
+    assert theirs is not None
+    assert ours.rmse_m < theirs.rmse_m / 3  # a lever arm not modelled is an error of its whole length
+    assert "ips_offset_m: [" in yaml_snippet(result)
+
+
+def test_a_robot_that_never_turned_leaves_the_lever_arm_as_declared_and_says_why() -> None:
+    robot = sim_config(ips_offset_m=(0.1, 0.04))
+    square = _undeclared(simulated(robot, 3, loops=1, scenario="square"))  # the paper's square: driven, never turned
+    result = tune([square], sim_config())
+    assert result.ips_offset is None
+    assert not any(change.startswith("robot.ips_offset_m") for change in result.changes)
+    assert any("only turns show the beacon's lever arm" in note for note in result.notes)
+
+
+def test_a_lever_arm_declared_right_is_left_as_it_is() -> None:
+    robot = sim_config(ips_offset_m=(0.1, 0.04))
+    result = tune([simulated(robot, 1, loops=1, scenario="random")], robot)  # the log declares the true lever arm
+    assert result.before[0].turned_rad >= math.pi / 2  # the robot turned: the lever arm was fitted, not skipped
+    assert result.ips_offset is None
+    assert not any(change.startswith("robot.ips_offset_m") for change in result.changes)
