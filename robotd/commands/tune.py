@@ -16,12 +16,18 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     """Add `robotd tune`."""
     tune = subparsers.add_parser(
         "tune",
-        help="fit the filter's noise, odometry calibration and the beacon's lever arm to sensor logs (no truth needed);"
-        " write a YAML snippet",
+        help="fit the filter's noise and odometry calibration (on request the beacon's lever arm) to sensor logs (no"
+        " truth needed); write a YAML snippet",
     )
     tune.add_argument("logs", nargs="+", metavar="LOG", help="sensor logs (JSON Lines)")
     tune.add_argument("--config", help="YAML configuration to start from (default: built-in defaults)")
     tune.add_argument("--out", metavar="FILE.yaml", help="write the YAML snippet here (default: print it)")
+    tune.add_argument(
+        "--lever-arm",
+        action="store_true",
+        help="fit the beacon's lever arm too (robot.ips_offset_m; from logs in which the robot turned): for a lever arm"
+        " not measured; a radio's bias that turns with the robot can look like one",
+    )
     tune.set_defaults(handler=run_tune)
 
 
@@ -44,7 +50,7 @@ def run_tune(args: argparse.Namespace) -> int:
             print(f"robotd tune: {path}: {refusal}", file=sys.stderr)
             return os.EX_DATAERR
         logs.append(log)
-    result = tune(logs, config)
+    result = tune(logs, config, lever_arm=args.lever_arm)
     for path, before, after in zip(args.logs, result.before, result.after, strict=True):
         print(
             f"{path}: {after.fixes} fixes; innovations' negative log likelihood per fix {before.nll:.3f} -> "

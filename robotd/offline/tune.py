@@ -10,17 +10,20 @@ with on each log, averaged by their precision, and the delay of fixes without a 
 filter's online process noise scale is off while fitting (the fit is what it learns, done over whole logs); the
 fitted noise is the prior the daemon's scale starts from.
 
-The beacon's lever arm (robot.ips_offset_m) is fitted the same way, before the noise and again after it: a lever arm
-measured wrong, or not declared, puts a bias on every fix that turns with the robot, which the noise would otherwise
-absorb. Only rotation shows it (driving straight, a lever arm is a constant shift that the position takes up), so it
-is fitted only on the logs whose robot turned by a quarter turn or more (MIN_TURN_RAD, the filter's heading at each
-fix): without turns a made-up lever arm gives the filter's heading a handle on the fixes, which fits their noise (a
-square driven without turning took a 16 cm lever arm that was not there). It is searched by steps in each axis,
-halved down to OFFSET_RESOLUTION_M, and kept only when it passes a likelihood-ratio test against the one the logs
-declare (2 dof at 95 %: the total negative log likelihood lower by SIGNIFICANT_NLL, each log's fixes counted for
-what their innovations' correlation leaves them worth) and differs from it by OFFSET_MIN_CHANGE_M or more (a smaller
-change is within what one log's fit can tell). The fitted lever arm is one for every log (the same robot's), in
-place of the one each log declares.
+On request (`robotd tune --lever-arm`), the beacon's lever arm (robot.ips_offset_m) is fitted the same way, before
+the noise and again after it. Only on request: on the libRSF robot's real UWB fixes it found a lever arm of 13 cm
+that motion-capture truth does not show (truth given as fixes: none found) and that made the replay's error larger,
+a bias of the radio's that turns with the robot as a lever arm would (presumably the body shadowing some anchors).
+A lever arm measured wrong, or not declared, puts a bias on every fix that turns with the robot, which the noise
+would otherwise absorb. Only rotation shows it (driving straight, a lever arm is a constant shift that the position
+takes up), so it is fitted only on the logs whose robot turned by a quarter turn or more (MIN_TURN_RAD, the filter's
+heading at each fix): without turns a made-up lever arm gives the filter's heading a handle on the fixes, which fits
+their noise (a square driven without turning took a 16 cm lever arm that was not there). It is searched by steps in
+each axis, halved down to OFFSET_RESOLUTION_M, and kept only when it passes a likelihood-ratio test against the one
+the logs declare (2 dof at 95 %: the total negative log likelihood lower by SIGNIFICANT_NLL, each log's fixes
+counted for what their innovations' correlation leaves them worth) and differs from it by OFFSET_MIN_CHANGE_M or
+more (a smaller change is within what one log's fit can tell). The fitted lever arm is one for every log (the same
+robot's), in place of the one each log declares.
 """
 
 from __future__ import annotations
@@ -132,15 +135,18 @@ def _total(fits: Sequence[LogFit]) -> float:
     return sum(f.nll * f.fixes for f in fits)
 
 
-def tune(logs: Sequence[SensorLog], config: RobotdConfig) -> TuneResult:
-    """Fit the noise parameters and the odometry calibration to the logs (see the module docstring)."""
+def tune(logs: Sequence[SensorLog], config: RobotdConfig, *, lever_arm: bool = False) -> TuneResult:
+    """Fit the noise parameters and the odometry calibration to the logs, and with `lever_arm` the beacon's lever arm
+    (see the module docstring)."""
     start = config.ekf
     before = [score(log, config, start)[0] for log in logs]
     declared = robot_from_log(logs[0], config)[1]
     turning = [log for log, fit in zip(logs, before, strict=True) if fit.turned_rad >= MIN_TURN_RAD]
     notes: list[str] = []
     offset = declared
-    if turning:
+    if not lever_arm:
+        turning = []
+    elif turning:
         offset = _fit_offset(turning, config, start, declared)
     else:
         turned = max((math.degrees(fit.turned_rad) for fit in before), default=0.0)

@@ -33,6 +33,7 @@ def test_tuning_on_one_log_improves_the_replay_of_a_held_out_log() -> None:
     start = _overconfident(robot)
     result = tune([fitted_on], start)
     assert result.changes
+    assert result.ips_offset is None  # the lever arm only on request
     assert result.after[0].nll < result.before[0].nll
     tuned = dataclasses.replace(start, ekf=result.ekf)
     before_fit, _ = score(held_out, start, start.ekf)
@@ -80,7 +81,7 @@ def test_a_lever_arm_left_out_of_the_configuration_is_found_on_a_turning_robot_a
     robot = sim_config(ips_offset_m=truth)
     fitted_on, held_out = (_undeclared(simulated(robot, seed, loops=1, scenario="random")) for seed in (1, 2))
     start = sim_config()
-    result = tune([fitted_on], start)
+    result = tune([fitted_on], start, lever_arm=True)
     assert result.ips_offset is not None
     assert math.dist(result.ips_offset, truth) < 0.02, result.ips_offset
     assert any(change.startswith("robot.ips_offset_m: [0, 0] ->") for change in result.changes)
@@ -100,7 +101,7 @@ def test_a_lever_arm_left_out_of_the_configuration_is_found_on_a_turning_robot_a
 def test_a_robot_that_never_turned_leaves_the_lever_arm_as_declared_and_says_why() -> None:
     robot = sim_config(ips_offset_m=(0.1, 0.04))
     square = _undeclared(simulated(robot, 3, loops=1, scenario="square"))  # the paper's square: driven, never turned
-    result = tune([square], sim_config())
+    result = tune([square], sim_config(), lever_arm=True)
     assert result.ips_offset is None
     assert not any(change.startswith("robot.ips_offset_m") for change in result.changes)
     assert any("only turns show the beacon's lever arm" in note for note in result.notes)
@@ -108,7 +109,7 @@ def test_a_robot_that_never_turned_leaves_the_lever_arm_as_declared_and_says_why
 
 def test_a_lever_arm_declared_right_is_left_as_it_is() -> None:
     robot = sim_config(ips_offset_m=(0.1, 0.04))
-    result = tune([simulated(robot, 1, loops=1, scenario="random")], robot)  # the log declares the true lever arm
+    result = tune([simulated(robot, 1, loops=1, scenario="random")], robot, lever_arm=True)  # declared right
     assert result.before[0].turned_rad >= math.pi / 2  # the robot turned: the lever arm was fitted, not skipped
     assert result.ips_offset is None
     assert not any(change.startswith("robot.ips_offset_m") for change in result.changes)
