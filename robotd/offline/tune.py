@@ -71,7 +71,7 @@ class LogFit:
     nll: float
     fixes: int
     nis_mean: float
-    turned_rad: float = 0.0  # the range of the filter's heading over the fixes (max - min, unwrapped)
+    turned_rad: float = 0.0  # the range of the filter's heading over the fixes (max - min, unwrapped; when measured)
     correlation: float = 0.0  # lag-one correlation of the accepted fixes' innovations, each axis scaled by its S
 
 
@@ -89,10 +89,16 @@ class TuneResult:
 
 
 def score(
-    log: SensorLog, config: RobotdConfig, ekf_config: EkfConfig, offset: tuple[float, float] | None = None
+    log: SensorLog,
+    config: RobotdConfig,
+    ekf_config: EkfConfig,
+    offset: tuple[float, float] | None = None,
+    *,
+    measure_turn: bool = False,
 ) -> tuple[LogFit, Estimator]:
     """Replay one log through robotd's filter with ekf_config (and the beacon at `offset`, else where the log or the
-    configuration says); the innovations' fit, and the filter at the end."""
+    configuration says); the innovations' fit (with `measure_turn`, how far the robot turned), and the filter at the
+    end."""
     geometry, declared, cpr, _ = robot_from_log(log, config)
     offset = declared if offset is None else offset
     # the fit sets the odometry noise itself: the filter's own learnt scale on it would answer for the same thing
@@ -118,8 +124,9 @@ def score(
                 continue
             nis = min(d.nis, d.gate)
             nll += 0.5 * (math.log(det) + nis)
-            heading += math.remainder(estimator.pose().theta - heading, math.tau)
-            low, high = min(low, heading), max(high, heading)
+            if measure_turn:  # a pose per fix: a tenth more time per replay, needed once per log
+                heading += math.remainder(estimator.pose().theta - heading, math.tau)
+                low, high = min(low, heading), max(high, heading)
             if d.verdict is Verdict.ACCEPTED:
                 whitened.append((d.nu[0] / math.sqrt(s_xx), d.nu[1] / math.sqrt(s_yy)))
             nis_sum += nis
@@ -139,22 +146,22 @@ def tune(logs: Sequence[SensorLog], config: RobotdConfig, *, lever_arm: bool = F
     """Fit the noise parameters and the odometry calibration to the logs, and with `lever_arm` the beacon's lever arm
     (see the module docstring)."""
     start = config.ekf
-    before = [score(log, config, start)[0] for log in logs]
+    before = [score(log, config, start, measure_turn=lever_arm)[0] for log in logs]
+    # None: each log's own lever arm (its meta's, else the configuration's); a fitted one replaces them all
+    offset: tuple[float, float] | None = None
     declared = robot_from_log(logs[0], config)[1]
     turning = [log for log, fit in zip(logs, before, strict=True) if fit.turned_rad >= MIN_TURN_RAD]
     notes: list[str] = []
-    offset = declared
-    if not lever_arm:
-        turning = []
-    elif turning:
-        offset = _fit_offset(turning, config, start, declared)
-    else:
+    if lever_arm and turning:
+        offset = _fit_offset(turning, config, start, declared, declared)
+    elif lever_arm:
         turned = max((math.degrees(fit.turned_rad) for fit in before), default=0.0)
         notes.append(
             f"robot.ips_offset_m not fitted: the robot turned by {turned:.0f} deg at most, and only turns show the"
             f" beacon's lever arm (a log with a quarter turn or more would)"
         )
-    best, best_total = start, _total([score(log, config, start, offset)[0] for log in logs])
+    best = start
+    best_total = _total(before) if offset is None else _total([score(log, config, start, offset)[0] for log in logs])
     changes: list[str] = []
     for _ in range(SWEEPS):
         for name, low, high in PARAMETERS:
@@ -168,10 +175,9 @@ def tune(logs: Sequence[SensorLog], config: RobotdConfig, *, lever_arm: bool = F
                 if total < best_total - 1e-6 * abs(best_total):
                     best, best_total = trial, total
                     value = trial_value
-    if turning:
-        offset = _fit_offset(turning, config, best, offset, declared)  # again, with the noise it let the fit find
-    fitted_offset = None if offset == declared else offset
-    if fitted_offset is not None:
+    if lever_arm and turning:  # again, with the noise it let the fit find
+        offset = _fit_offset(turning, config, best, offset or declared, declared)
+    if offset is not None:
         changes.append(
             f"robot.ips_offset_m: [{declared[0]:.4g}, {declared[1]:.4g}] -> [{offset[0]:.4g}, {offset[1]:.4g}]"
             " (the fixes' bias turns with the robot: the beacon's lever arm)"
@@ -201,7 +207,7 @@ def tune(logs: Sequence[SensorLog], config: RobotdConfig, *, lever_arm: bool = F
     latency = round(sums[3] / weights[3], 4) if untimed else None
     if latency is not None:
         changes.append(f"marvelmind.default_latency_s: {config.marvelmind.default_latency_s:.4g} -> {latency:.4g}")
-    return TuneResult(best, latency, fitted_offset, before, after, changes, notes)
+    return TuneResult(best, latency, offset, before, after, changes, notes)
 
 
 def _fit_offset(
@@ -209,19 +215,18 @@ def _fit_offset(
     config: RobotdConfig,
     ekf_config: EkfConfig,
     start: tuple[float, float],
-    declared: tuple[float, float] | None = None,
-) -> tuple[float, float]:
-    """The lever arm that makes the logs' fixes most likely, searched from `start` by halving steps per axis; the
-    `declared` one (default: `start`) unless the best passes the likelihood-ratio test against it."""
-    declared = start if declared is None else declared
+    declared: tuple[float, float],
+) -> tuple[float, float] | None:
+    """The lever arm that makes the logs' fixes most likely, searched from `start` by halving steps per axis; None
+    (the declared one stays) unless it passes the tests against `declared` (module docstring)."""
+    scored: dict[tuple[float, float], list[LogFit]] = {}
 
     def fits(offset: tuple[float, float]) -> list[LogFit]:
-        return [score(log, config, ekf_config, offset)[0] for log in logs]
+        if offset not in scored:  # the test below needs the start's and the best's again
+            scored[offset] = [score(log, config, ekf_config, offset)[0] for log in logs]
+        return scored[offset]
 
-    def total(offset: tuple[float, float]) -> float:
-        return _total(fits(offset))
-
-    best, best_total = start, total(start)
+    best, best_total = start, _total(fits(start))
     step = OFFSET_FIRST_STEP_M
     while step >= OFFSET_RESOLUTION_M:
         moved = False
@@ -229,21 +234,21 @@ def _fit_offset(
             trial = (round(best[0] + dx, 4), round(best[1] + dy, 4))
             if math.hypot(*trial) > OFFSET_LIMIT_M:
                 continue
-            trial_total = total(trial)
+            trial_total = _total(fits(trial))
             if trial_total < best_total:
                 best, best_total, moved = trial, trial_total, True
                 break
         if not moved:
             step /= 2.0
     if math.dist(best, declared) < OFFSET_MIN_CHANGE_M:
-        return declared
+        return None
     # the test counts each log's fixes for what they are worth: innovations that persist from fix to fix are fewer
     # independent ones (robotd.estimation.ar1), and a sum over them would overstate the evidence
     gain = sum(
         (old.nll - new.nll) * new.fixes * information(new.correlation)
         for old, new in zip(fits(declared), fits(best), strict=True)
     )
-    return best if gain >= SIGNIFICANT_NLL else declared
+    return best if gain >= SIGNIFICANT_NLL else None
 
 
 def yaml_snippet(result: TuneResult) -> str:

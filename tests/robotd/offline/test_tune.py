@@ -113,3 +113,14 @@ def test_a_lever_arm_declared_right_is_left_as_it_is() -> None:
     assert result.before[0].turned_rad >= math.pi / 2  # the robot turned: the lever arm was fitted, not skipped
     assert result.ips_offset is None
     assert not any(change.startswith("robot.ips_offset_m") for change in result.changes)
+
+
+def test_without_the_lever_arm_fit_each_log_keeps_the_lever_arm_it_declares() -> None:
+    off_centre = simulated(sim_config(ips_offset_m=(0.1, 0.04)), 1, loops=1, scenario="random")
+    centred = simulated(sim_config(), 2, loops=1, scenario="random")
+    start = sim_config()
+    result = tune([off_centre, centred], start)
+    assert result.ips_offset is None
+    fitted = dataclasses.replace(result.ekf, odometry_scale=start.ekf.odometry_scale)  # `after` is before the scales
+    for log, after in zip((off_centre, centred), result.after, strict=True):
+        assert after == score(log, start, fitted)[0]  # replayed with its own meta.robot.ips_offset
