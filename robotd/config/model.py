@@ -387,7 +387,10 @@ class EkfConfig:
         each(in_range(0.5, 2.0)),
     )
     scale_sigma: float = setting(
-        0.1, "Standard deviation of the starting odometry scales (how far from them calibration may look).", positive
+        0.1,
+        "Standard deviation of each starting odometry scale (how far from them calibration may look); half of its"
+        " variance is the wheel radius's, which the three scales share.",
+        positive,
     )
     scale_limit: float = setting(
         0.25, "Learnt odometry scales stay within 1 +- this.", in_range(0.0, 0.5, above_low=True)

@@ -57,6 +57,10 @@ INTERIM_SHARE = 0.1
 MAX_WINDOW_S = 60.0  # a window that has not travelled its length by then starts again (bounded memory)
 TRIM_SIGMAS = 4.0
 PLACEMENT_DOF = 2.0  # per axis: the window's placement (tx, ty, phi, psi) fitted to the fixes absorbs that much error
+# A configured robot's three scales share one error, the wheel radius's (it scales every wheel speed, so vx, vy and wz
+# alike), besides each one's own (rollers for vy, the track and slip for wz): the prior's share of the shared one in
+# each scale's variance. Even odds between the two: a scale learnt then says half of what it found about the others
+RADIUS_SHARE = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,6 +144,11 @@ class Calibrator:
         self.offset = offset
         self.mean = np.array([start.kx, start.ky, start.kw, start.latency_s, start.time_error_s])
         self.cov = np.diag(np.square(np.asarray(start.sigmas, dtype=np.float64)))
+        if not start.windows:  # the configuration's prior (a saved calibration's covariance is its fits')
+            scales = np.asarray(start.sigmas[:3], dtype=np.float64)
+            shared = RADIUS_SHARE * np.outer(scales, scales)
+            np.fill_diagonal(shared, 0.0)
+            self.cov[:3, :3] += shared
         self.windows = start.windows
         self.fix_correlated_var = start.fix_correlated_var
         self.fix_correlation = start.fix_correlation

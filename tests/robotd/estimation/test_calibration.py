@@ -106,6 +106,39 @@ def test_scales_stay_within_their_bounds_whatever_the_fixes_say() -> None:
     assert np.isfinite(c.sigmas).all()
 
 
+def _straight_drive(start: Calibration) -> Calibration:
+    """A robot driving straight ahead and back at 0.3 m/s whose odometry reads 1 / 1.06 of its motion (a wheel radius
+    6 % larger than configured), fixes at 8 Hz with 2 cm of noise: only its forward scale is in the data."""
+    calibrator = Calibrator(start, CalibrationLimits(), (0.0, 0.0))
+    errors = np.random.default_rng(6).normal(0.0, 0.02, (240, 2))
+    t, x, dt = 0.0, 0.0, 0.025
+    for k in range(len(errors) * 5):
+        v = 0.3 if (k // 200) % 2 == 0 else -0.3  # five-second legs: the speed changes, so the delay is separable
+        calibrator.on_step(t, t + dt, (v / 1.06, 0.0, 0.0))
+        t, x = t + dt, x + v * dt
+        if k % 5 == 4:
+            ex, ey = errors[k // 5]
+            calibrator.on_fix(t, x + ex, ey, timed=True)
+    return calibrator.current
+
+
+def test_a_configured_robots_forward_scale_says_something_of_its_other_scales() -> None:
+    # the wheel radius scales vx, vy and wz alike: a robot that has only driven straight has shown its radius, which
+    # the lateral and rotational scales share, but not their own errors (rollers, track)
+    learnt = _straight_drive(Calibration())
+    assert learnt.windows >= 3
+    assert learnt.kx == pytest.approx(1.06, abs=0.015)
+    for k in (calibration.KY, calibration.KW):
+        scale = (learnt.kx, learnt.ky, learnt.kw)[k]
+        assert 0.25 < (scale - 1.0) / (learnt.kx - 1.0) < 0.75  # moved towards the forward scale, not all the way
+        assert learnt.sigmas[calibration.KX] < learnt.sigmas[k] < 0.095  # surer than the prior, less than of kx
+    # a saved calibration's scales were each fitted: what one of them learns next is its own
+    saved = _straight_drive(dataclasses.replace(Calibration(), windows=5))
+    assert saved.kx == pytest.approx(1.06, abs=0.015)
+    assert saved.ky == pytest.approx(1.0, abs=1e-3)
+    assert saved.kw == pytest.approx(1.0, abs=1e-3)
+
+
 def _circle_drive(fix_errors: np.ndarray, true_scale: float, fix_rate_hz: int = 8) -> Calibration:
     """A robot driving circles at 0.3 m/s whose fixes (8 Hz) carry `fix_errors`; odometry reads 1 / true_scale."""
     calibrator = Calibrator(Calibration(), CalibrationLimits(), (0.0, 0.0))
