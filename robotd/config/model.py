@@ -388,7 +388,7 @@ class EkfConfig:
     )
     scale_sigma: float = setting(
         0.1,
-        "Standard deviation of each starting odometry scale (how far from them calibration may look); half of its"
+        "Standard deviation of each starting odometry scale (how far from it calibration may look); half of its"
         " variance is the wheel radius's, which the three scales share.",
         positive,
     )
