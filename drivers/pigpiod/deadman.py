@@ -2,7 +2,7 @@
 
 Theory of operation. pigpiod keeps generating PWM after its client is gone, so an owner that is killed, stopped or
 hung would leave the wheels driving. The deadman lives where the owner's death cannot reach it: a script stored and
-run inside pigpiod (PROC, PROCR). The owner bumps the script's parameter p0 (PROCU) once per control period; the
+run inside pigpiod (PROC, PROCR). The owner bumps the script's parameter p0 (PROCU) a few times per timeout; the
 script reads p0 every `slice_ms`, noting pigpiod's tick (microseconds) at each read. Armed by the first bump, it
 writes every enable pin low, then every direction pin low (W also stops PWM; enables first, so the L298 never sees
 a direction input change under a live enable) at the first read that finds p0 unchanged for `timeout` since the read
@@ -36,6 +36,8 @@ from drivers.pigpiod.protocol import MAX_SCRIPTS, SCRIPT_STATUS, Cmd, Err, Scrip
 SIGNATURE = 0x726F6264
 """p9 of every robotd deadman ("robd")."""
 HEARTBEAT, TRIPS, PIN_MASK, SIGNATURE_PARAM = 0, 1, 8, 9
+STATUS_S = 0.5
+"""About how often a status request goes with a heartbeat: the answers are read then, and a trip is seen."""
 MAX_OUTSTANDING = 64
 """Answers allowed to be owed before bumps stop: a pigpiod that stops answering stops hearing the heartbeat."""
 MAX_MILS = 60_000
@@ -118,8 +120,10 @@ class PigpioDeadman:
         *,
         timeout_s: float,
         period_s: float,
+        heartbeat_s: float | None = None,
     ) -> PigpioDeadman:
-        """Store and run a deadman for these pins; bumped every `period_s`, it trips `timeout_s` after the last bump.
+        """Store and run a deadman for these pins, bumped about every `heartbeat_s` (default `period_s`); it trips
+        `timeout_s` after the last bump.
 
         The script reads its heartbeat every period (whole milliseconds, at least 1), so the motors stop within
         `timeout_s` plus one period of the last bump. Raises PigpiodUnavailableError or PigpioCommandError.
@@ -141,8 +145,10 @@ class PigpioDeadman:
         except BaseException:
             await link.close()
             raise
-        # the answers are read at 10 Hz: a trip is noticed within 0.1 s of the owner's return
-        status_every = max(1, round(0.1 / period_s))
+        # the answers are read with a status request about every STATUS_S: a trip is noticed within that of the
+        # owner's return (meanwhile the pins the script wrote low keep the wheels stopped), and a robot at rest
+        # wakes for the answers only twice a second
+        status_every = max(1, round(STATUS_S / (period_s if heartbeat_s is None else heartbeat_s)))
         return cls(link, script_id, status_every=status_every, connect_timeout_s=connect_timeout_s)
 
     def bump(self) -> None:

@@ -3,12 +3,19 @@ process, drivers.gpiod.deadman): one at a time, installed with the motors, bumpe
 trips and loss, removed on a clean exit.
 
 A keeper without a factory (motors injected by a test, or `motors.deadman_script: false`) does nothing.
+
+The control loop calls `bump` every period, but the deadman only needs a heartbeat a few times per timeout: each one
+is a write to pigpiod (or the watchdog), so the keeper passes one on only when `heartbeat_s` has about passed since
+the last (the loop at rest wakes every `heartbeat_s`, robotd.daemon.pacer, and bumps each time). A loop that stops
+stepping still stops the heartbeats, so the motors stop within the deadman's timeout of the stall, as before.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
+import time
 from collections.abc import Awaitable, Callable
 
 from drivers.pigpiod.client import PigpioCommandError
@@ -17,6 +24,10 @@ from drivers.pigpiod.deadman import Deadman
 log = logging.getLogger("robotd")
 
 DeadmanFactory = Callable[[], Awaitable[Deadman]]
+
+# a heartbeat is passed on once this share of `heartbeat_s` has passed: the loop at rest wakes every `heartbeat_s`,
+# and its timer can fire a little before the clock read after it says the interval is over
+HEARTBEAT_SLACK = 0.75
 
 
 class DeadmanKeeper:
@@ -29,10 +40,15 @@ class DeadmanKeeper:
         on_trip: Callable[[int], None],
         on_lost: Callable[[OSError], None],
         uninstall_timeout_s: float,
+        heartbeat_s: float = 0.0,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self._factory = factory
         self._on_trip, self._on_lost = on_trip, on_lost
         self._uninstall_timeout_s = uninstall_timeout_s
+        self._min_gap_s = HEARTBEAT_SLACK * heartbeat_s
+        self._clock = clock
+        self._bumped_at = -math.inf
         self.current: Deadman | None = None
         self._changed = asyncio.Event()
 
@@ -42,11 +58,16 @@ class DeadmanKeeper:
             return
         self.drop()
         self.current = await self._factory()
+        self._bumped_at = -math.inf  # a new deadman hears the next bump
         self._changed.set()
 
     def bump(self) -> None:
-        """The owner is alive (never blocks)."""
-        if self.current is not None:
+        """The owner is alive (never blocks): a heartbeat for the deadman if `heartbeat_s` has about passed."""
+        if self.current is None:
+            return
+        now = self._clock()
+        if now - self._bumped_at >= self._min_gap_s:
+            self._bumped_at = now
             self.current.bump()
 
     async def follow(self) -> None:

@@ -38,6 +38,7 @@ from drivers.wheels.motors import GpiozeroMotors, MotorOutputs, enable_and_direc
 from robotd.config.gpio import Backend, resolve_backend
 from robotd.config.model import RobotdConfig
 from robotd.daemon.deadman_keeper import DeadmanFactory
+from robotd.daemon.pacer import rest_period_s
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,6 +98,7 @@ def _pigpio(config: RobotdConfig, clock: Callable[[], float]) -> Hardware:
             directions,
             timeout_s=timeout,
             period_s=period,
+            heartbeat_s=rest_period_s(period, config.teleop.deadman_timeout_s),
         )
 
     return Hardware(

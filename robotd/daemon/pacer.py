@@ -17,12 +17,17 @@ from drivers.pacing import next_tick, sleep_until
 REST_BUMPS_PER_TIMEOUT = 4
 
 
+def rest_period_s(period_s: float, deadman_timeout_s: float) -> float:
+    """How often the loop at rest wakes, and the pace of the deadman's heartbeat either way: a few per timeout."""
+    return max(period_s, deadman_timeout_s / REST_BUMPS_PER_TIMEOUT)
+
+
 class ControlPacer:
     """Sleeps the control loop until its next step: the next period, or at rest the next command or heartbeat."""
 
     def __init__(self, period_s: float, deadman_timeout_s: float) -> None:
         self.period_s = period_s
-        self.rest_period_s = max(period_s, deadman_timeout_s / REST_BUMPS_PER_TIMEOUT)
+        self.rest_period_s = rest_period_s(period_s, deadman_timeout_s)
         self._resting: asyncio.Future[None] | None = None  # what a loop at rest waits for: a command or the heartbeat
         self._deadline: float | None = None
         self.rest_wakeups = 0  # wake-ups at rest (heartbeats and commands), for the status and the tests

@@ -3,20 +3,21 @@
 Theory of operation. Producers call back into the daemon from the loop (no threads): the encoder source hands
 `WheelTicks` at its publish rate (-> estimator prediction, wheel speeds for the control loop, the sensor log), the
 Marvelmind reader hands parser events (-> estimator update, and a pose published at once so a fix reaches the pose
-socket without waiting for the next period), and the teleop socket hands validated commands (-> the control loop is
-woken at once, so a command reaches the motors without waiting for the next period). The control loop steps the
-`MotionController` at `control.rate_hz` and writes the duties; the pose task publishes at `pose_socket.rate_hz` and
-a status at 1 Hz; the health task pings systemd's watchdog only while the control loop and the filter keep ticking.
+socket without waiting for the next period), and the teleop socket hands validated commands (-> a control loop at
+rest is woken at once, so a command from rest reaches the motors without waiting; a driving one takes it at its next
+period). The control loop steps the `MotionController` at `control.rate_hz` and writes the duties; the pose task
+publishes at `pose_socket.rate_hz` and a status at 1 Hz; the health task pings systemd's watchdog only while the
+control loop and the filter keep ticking.
 
 Exit paths: SIGTERM, SIGINT, SIGHUP or SIGQUIT ends the TaskGroup and `run()` returns 0; an exception in any task
 cancels the others and `run()` returns 1 (systemd restarts the service). Either way the motors are zeroed before
 anything else is torn down, and the deadman script is removed from pigpiod. A failure that is operational (a device
 or pigpiod gone) is logged in one line, any other (a bug) at ERROR with its traceback. The deadman
 (drivers.pigpiod.deadman) covers the ways out no handler sees: SIGKILL, SIGSTOP, a hung loop. Installed in pigpiod
-with the motors, bumped by every control period, it stops the motors `teleop.deadman_timeout_s` after the last bump;
-when it did, the daemon writes every motor pin again and drives only after a fresh command. A pigpiod that goes away
-(or a deadman that is lost) is re-connected with backoff, motors and deadman together; the motors are driven again
-only after a command that arrived after the reconnection.
+with the motors, bumped by the control loop a few times per timeout, it stops the motors `teleop.deadman_timeout_s`
+after the last bump; when it did, the daemon writes every motor pin again and drives only after a fresh command. A
+pigpiod that goes away (or a deadman that is lost) is re-connected with backoff, motors and deadman together; the
+motors are driven again only after a command that arrived after the reconnection.
 """
 
 from __future__ import annotations
@@ -93,7 +94,6 @@ class _Teleop:
 
     twist: Twist | None = None
     received_at: float | None = None
-    stepped_at: float = -math.inf  # when a command last stepped the controller at once
 
 
 MotorsFactory = Callable[[], MotorOutputs]
@@ -141,12 +141,16 @@ class Daemon:
         self.encoders = encoders if encoders is not None else wheels.encoders
         self._motors_factory = motors_factory or wheels.motors_factory
         self.motors: MotorOutputs | None = None
-        # the back-end's deadman guards the real motors; injected motors (tests) get the deadman injected with them
+        self.pacer = ControlPacer(self.controller.period_s, config.teleop.deadman_timeout_s)
+        # the back-end's deadman guards the real motors; injected motors (tests) get the deadman injected with them.
+        # Its heartbeat at the pace of the loop at rest, driving or not: a few per timeout is all it needs
         self.deadman = DeadmanKeeper(
             deadman_factory or (wheels.deadman_factory if motors_factory is None else None),
             on_trip=self._on_deadman_trip,
             on_lost=self._on_deadman_lost,
             uninstall_timeout_s=config.pigpiod.connect_timeout_s,
+            heartbeat_s=self.pacer.rest_period_s,
+            clock=clock,
         )
         self._shutdown_signal = "?"
         self.marvelmind = MarvelmindReader(config.marvelmind, self._on_marvelmind, clock)
@@ -163,9 +167,9 @@ class Daemon:
             max_clients=pose_socket.max_clients,
         )
         self.control_periods = PeriodStats()
-        self.pacer = ControlPacer(self.controller.period_s, config.teleop.deadman_timeout_s)
         self._last_fix_arrival: float | None = None
         self._teleop = _Teleop()
+        self._teleop_socket: TeleopSocket | None = None
         self._alive = _Liveness()
         self._wheel_speeds: tuple[float, float, float, float] = ZERO
         self._odometry_state = "waiting"
@@ -221,14 +225,10 @@ class Daemon:
         self._counters["teleop_commands"] += 1
         if self._recorder is not None:
             self._recorder.write(sensorlog.Command(message.received_at, twist.vx, twist.vy, twist.wz))
-        # The command reaches the motors now, not at the next period; but at most one command per half period
-        # does, so a flood of valid commands cannot run the controller and the motor writes at its rate: the
-        # control loop applies a command that arrives sooner at its next tick.
-        self.pacer.command_arrived()  # a loop at rest steps at once and resumes its period
-        now = self.clock()
-        if now - teleop.stepped_at >= 0.5 * self.controller.period_s:
-            teleop.stepped_at = now
-            self._control_step(now)
+        # A loop at rest steps at once, so a command from rest reaches the motors now; a loop driving applies it at
+        # its next period (a step per command as well would write the motors half as often again at 20 Hz teleop,
+        # and let a flood of valid commands set the rate of the controller and the motor writes).
+        self.pacer.command_arrived()
 
     # --- tasks --------------------------------------------------------------------------------------------------
 
@@ -247,6 +247,7 @@ class Daemon:
             Path(self.config.pose_socket.path).parent.mkdir(parents=True, exist_ok=True)
             await self.pose_server.start()
             transport = await open_teleop(self.config.teleop, self.teleop_receiver, self._on_teleop)
+            self._teleop_socket = transport
             # Everything built so far (modules, gpiozero, numpy, the drivers) lives as long as the process: out of
             # the cyclic collector's sight, its passes stay short and cannot stall a control period.
             gc.collect()
@@ -279,6 +280,7 @@ class Daemon:
             for signum in SHUTDOWN_SIGNALS:
                 loop.remove_signal_handler(signum)
             if transport is not None:
+                self._teleop_socket = None
                 transport.close()
             await self.pose_server.close()
             self._close_motors()
@@ -308,9 +310,13 @@ class Daemon:
         raise _Shutdown
 
     async def _control_loop(self) -> None:
-        """Step the controller at its rate, or at rest only for the deadman's heartbeat (robotd.daemon.pacer); a
-        command also steps it at once, from `_on_teleop`."""
+        """Step the controller at its rate, or at rest only for the deadman's heartbeat and at once on a command
+        (robotd.daemon.pacer). Driving, it reads the teleop socket itself at every period; at rest, the socket wakes
+        it (robotd.daemon.teleop_socket)."""
         while True:
+            teleop = self._teleop_socket
+            if teleop is not None:
+                teleop.poll()  # the commands that arrived since the last period
             now = self.clock()
             self._control_step(now)
             if self.viewer is not None:
@@ -321,6 +327,8 @@ class Daemon:
                 self.control_periods.pause()  # a parked robot's heartbeat is not a control period
             else:
                 self.control_periods.tick(now)
+            if teleop is not None:
+                teleop.watch(at_rest)
             await self.pacer.next_step(at_rest=at_rest)
 
     def _at_rest(self, now: float) -> bool:

@@ -7,6 +7,10 @@ over all sources: once the budget is spent, reading pauses until it refills and 
 flood costs the daemon a bounded share of the CPU and the control loop is not starved of it. Each datagram read
 goes to the receiver with its source address, whose rate limit is the first check. A flood is reported in the log,
 at most once every `FLOOD_REPORT_S`.
+
+Two ways to be read: on arrival (`watch(True)`, the selector wakes the loop for each datagram) or when the owner polls
+(`watch(False)` and `poll()`). The daemon's control loop polls at every period while it drives, so the commands of a
+20 Hz teleop client cost no wake-ups of their own, and watches while at rest, so a command wakes it at once.
 """
 
 from __future__ import annotations
@@ -51,8 +55,26 @@ class TeleopSocket:
         self._resume: asyncio.TimerHandle | None = None
         self._reported_at = clock()
         self._reported = (0, 0)  # rate_limited and read_pauses at the last report
+        self._watching = True
         sock.setblocking(False)
         self._loop.add_reader(sock.fileno(), self._readable)
+
+    def watch(self, watching: bool) -> None:
+        """Read each datagram on arrival (True), or only when `poll` is called (False)."""
+        if watching == self._watching:
+            return
+        self._watching = watching
+        if self._resume is not None:  # reading is paused: the resumption follows the new choice
+            return
+        if watching:
+            self._loop.add_reader(self.sock.fileno(), self._readable)
+        else:
+            self._loop.remove_reader(self.sock.fileno())
+
+    def poll(self) -> None:
+        """Read what has arrived, as on arrival (nothing while a spent read budget pauses reading)."""
+        if self._resume is None:
+            self._readable()
 
     def _readable(self) -> None:
         receiver, recvfrom, clock = self.receiver, self.sock.recvfrom, self.clock
@@ -91,12 +113,14 @@ class TeleopSocket:
 
     def _pause(self) -> None:
         self.receiver.read_pauses += 1
-        self._loop.remove_reader(self.sock.fileno())
+        if self._watching:
+            self._loop.remove_reader(self.sock.fileno())
         self._resume = self._loop.call_later(BATCH / self._budget.rate_per_s, self._resume_reading)
 
     def _resume_reading(self) -> None:
         self._resume = None
-        self._loop.add_reader(self.sock.fileno(), self._readable)
+        if self._watching:
+            self._loop.add_reader(self.sock.fileno(), self._readable)
 
     def _report(self, now: float) -> None:
         """Say in the log what a flood cost since the last report (called at most once every FLOOD_REPORT_S)."""

@@ -13,6 +13,7 @@ import pytest
 
 from drivers.pigpiod.deadman import (
     SIGNATURE,
+    STATUS_S,
     DeadmanLostError,
     PigpioDeadman,
     deadman_script,
@@ -96,7 +97,7 @@ async def test_the_pins_go_low_after_the_last_bump_enables_first(server: Virtual
         # generous functional bounds; the figure itself is `robotd bench daemon`'s
         assert TIMEOUT_S / 2 <= writes[0].t - last_bump <= TIMEOUT_S + 2.0
         assert not trips
-        await bump_for(deadman, 0.3)  # the owner is back: its next status read sees the trip
+        await bump_for(deadman, STATUS_S + 0.2)  # the owner is back: its next status read sees the trip
         await until(lambda: trips == [1], 2.0)
         assert deadman.trips == 1
     finally:

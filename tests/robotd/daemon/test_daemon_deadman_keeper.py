@@ -124,3 +124,27 @@ async def test_without_a_factory_the_keeper_does_nothing() -> None:
     keeper.bump()
     await keeper.uninstall()
     assert keeper.current is None
+
+
+async def test_the_heartbeat_is_passed_on_at_its_own_pace_whatever_the_control_rate() -> None:
+    now = [0.0]
+    made: list[FakeDeadman] = []
+
+    async def make() -> FakeDeadman:
+        made.append(FakeDeadman())
+        return made[-1]
+
+    keeper = DeadmanKeeper(
+        make, on_trip=lambda _t: None, on_lost=lambda _e: None, uninstall_timeout_s=1.0, heartbeat_s=0.125,
+        clock=lambda: now[0],
+    )  # fmt: skip
+    await keeper.install()
+    for step in range(50):  # one second of a 50 Hz control loop
+        now[0] = step * 0.02
+        keeper.bump()
+    # a heartbeat at least every 0.125 s (the deadman trips only a timeout after the last), far fewer than steps
+    assert 8 <= made[0].bumps <= 11
+    now[0] += 0.001
+    await keeper.install()  # a reconnection: the new deadman hears the next bump at once
+    keeper.bump()
+    assert made[1].bumps == 1
