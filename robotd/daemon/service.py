@@ -3,11 +3,11 @@
 Theory of operation. Producers call back into the daemon from the loop (no threads): the encoder source hands
 `WheelTicks` at its publish rate (-> estimator prediction, wheel speeds for the control loop, the sensor log), the
 Marvelmind reader hands parser events (-> estimator update, and a pose published at once so a fix reaches the pose
-socket without waiting for the next period), and the teleop socket hands validated commands (-> a control loop at
-rest is woken at once, so a command from rest reaches the motors without waiting; a driving one takes it at its next
-period). The control loop steps the `MotionController` at `control.rate_hz` and writes the duties; the pose task
-publishes at `pose_socket.rate_hz` and a status at 1 Hz; the health task pings systemd's watchdog only while the
-control loop and the filter keep ticking.
+socket without waiting for the next period), and the teleop socket hands validated commands (-> while the wheels are
+not driven the control loop is woken at once, so a command that starts them reaches the motors without waiting for
+the next period; while they are, the loop reads the socket itself at each period). The control loop steps the
+`MotionController` at `control.rate_hz` and writes the duties; the pose task publishes at `pose_socket.rate_hz` and
+a status at 1 Hz; the health task pings systemd's watchdog only while the control loop and the filter keep ticking.
 
 Exit paths: SIGTERM, SIGINT, SIGHUP or SIGQUIT ends the TaskGroup and `run()` returns 0; an exception in any task
 cancels the others and `run()` returns 1 (systemd restarts the service). Either way the motors are zeroed before
@@ -94,6 +94,7 @@ class _Teleop:
 
     twist: Twist | None = None
     received_at: float | None = None
+    stepped_at: float = -math.inf  # when a command last stepped the controller at once
 
 
 MotorsFactory = Callable[[], MotorOutputs]
@@ -225,10 +226,18 @@ class Daemon:
         self._counters["teleop_commands"] += 1
         if self._recorder is not None:
             self._recorder.write(sensorlog.Command(message.received_at, twist.vx, twist.vy, twist.wz))
-        # A loop at rest steps at once, so a command from rest reaches the motors now; a loop driving applies it at
-        # its next period (a step per command as well would write the motors half as often again at 20 Hz teleop,
-        # and let a flood of valid commands set the rate of the controller and the motor writes).
-        self.pacer.command_arrived()
+        self.pacer.command_arrived()  # a loop at rest steps at once and resumes its period
+        socket = self._teleop_socket
+        if socket is not None and not socket.watching:
+            return  # the wheels are driven: the loop read this command itself, and steps with it now
+        # The wheels are not driven (the loop watches the socket): the command reaches the motors now, not at the
+        # next period; but at most one command per half period does, so a flood of valid commands cannot run the
+        # controller and the motor writes at its rate: the control loop applies a command that arrives sooner at
+        # its next tick.
+        now = self.clock()
+        if now - teleop.stepped_at >= 0.5 * self.controller.period_s:
+            teleop.stepped_at = now
+            self._control_step(now)
 
     # --- tasks --------------------------------------------------------------------------------------------------
 
@@ -310,12 +319,12 @@ class Daemon:
         raise _Shutdown
 
     async def _control_loop(self) -> None:
-        """Step the controller at its rate, or at rest only for the deadman's heartbeat and at once on a command
-        (robotd.daemon.pacer). Driving, it reads the teleop socket itself at every period; at rest, the socket wakes
-        it (robotd.daemon.teleop_socket)."""
+        """Step the controller at its rate, or at rest only for the deadman's heartbeat (robotd.daemon.pacer). While
+        the wheels are driven it reads the teleop socket itself at every period; while they are not, the socket is
+        watched and a command steps the controller at once, from `_on_teleop` (robotd.daemon.teleop_socket)."""
         while True:
             teleop = self._teleop_socket
-            if teleop is not None:
+            if teleop is not None and not teleop.watching:
                 teleop.poll()  # the commands that arrived since the last period
             now = self.clock()
             self._control_step(now)
@@ -328,7 +337,7 @@ class Daemon:
             else:
                 self.control_periods.tick(now)
             if teleop is not None:
-                teleop.watch(at_rest)
+                teleop.watch(at_rest or not any(self.controller.last.duties))
             await self.pacer.next_step(at_rest=at_rest)
 
     def _at_rest(self, now: float) -> bool:

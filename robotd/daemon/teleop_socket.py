@@ -9,8 +9,9 @@ goes to the receiver with its source address, whose rate limit is the first chec
 at most once every `FLOOD_REPORT_S`.
 
 Two ways to be read: on arrival (`watch(True)`, the selector wakes the loop for each datagram) or when the owner polls
-(`watch(False)` and `poll()`). The daemon's control loop polls at every period while it drives, so the commands of a
-20 Hz teleop client cost no wake-ups of their own, and watches while at rest, so a command wakes it at once.
+(`watch(False)` and `poll()`). The daemon's control loop polls at every period while the wheels are driven, so the
+commands of a 20 Hz teleop client cost no wake-ups of their own, and watches while they are not, so a command that
+starts them reaches the motors at once.
 """
 
 from __future__ import annotations
@@ -58,6 +59,11 @@ class TeleopSocket:
         self._watching = True
         sock.setblocking(False)
         self._loop.add_reader(sock.fileno(), self._readable)
+
+    @property
+    def watching(self) -> bool:
+        """Whether datagrams are read on arrival (else only by `poll`)."""
+        return self._watching
 
     def watch(self, watching: bool) -> None:
         """Read each datagram on arrival (True), or only when `poll` is called (False)."""

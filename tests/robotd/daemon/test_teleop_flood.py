@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from robotd.config.model import RobotdConfig, TeleopConfig
+from robotd.config.model import ControlConfig, RobotdConfig, TeleopConfig
 from robotd.daemon.ratelimit import SourceRateLimiter, TokenBucket
 from robotd.daemon.service import Daemon
 from robotd.daemon.teleop import BURST_S, TeleopCommand, TeleopMessage, TeleopReceiver, TeleopSender
@@ -243,19 +243,43 @@ class NoEncoders:
         """Never called in these tests."""
 
 
-def test_valid_commands_never_step_the_controller_themselves() -> None:
+def test_valid_commands_step_the_controller_at_most_once_per_half_period() -> None:
     clock = Clock()
-    config = RobotdConfig(teleop=TeleopConfig(key_file="", allow_unauthenticated=True))
+    # (no encoder publishes here: the stall guard, which would stop a wheel that never turns after its timeout, is
+    # given its longest timeout so that the second of commands below is all throttling)
+    config = RobotdConfig(
+        teleop=TeleopConfig(key_file="", allow_unauthenticated=True), control=ControlConfig(stall_timeout_s=5.0)
+    )
     daemon = Daemon(config, clock=clock, encoders=NoEncoders())  # type: ignore[arg-type]
+    period = daemon.controller.period_s
     # one second of valid commands at 10 kHz, handed to the daemon's callback as the socket would
     for i in range(10_000):
         clock.now = 100.0 + i * 1e-4
         daemon._on_teleop(TeleopCommand(Twist(0.2, 0.0, 0.0), 7, i + 1, clock.now))
+    steps = daemon._counters["control_steps"]  # the count the status message reports
     assert daemon._counters["teleop_commands"] == 10_000
-    # the control loop's periods step it (none here: the loop is not running), whatever the commands' rate
-    assert daemon._counters["control_steps"] == 0
+    assert steps <= 1.0 / (0.5 * period) + 1
+    assert steps >= 1.0 / period  # yet every half period the newest command steps it at once
+    assert daemon.controller.last.setpoint.vx > 0.0
+
+
+class PolledSocket:
+    """What the daemon asks of its teleop socket when the loop reads it itself (the wheels driven)."""
+
+    watching = False
+
+
+def test_a_command_the_driving_loop_read_itself_does_not_step_the_controller_again() -> None:
+    clock = Clock()
+    config = RobotdConfig(teleop=TeleopConfig(key_file="", allow_unauthenticated=True))
+    daemon = Daemon(config, clock=clock, encoders=NoEncoders())  # type: ignore[arg-type]
+    daemon._teleop_socket = PolledSocket()  # type: ignore[assignment]
+    for i in range(100):
+        clock.now = 100.0 + i * 0.05
+        daemon._on_teleop(TeleopCommand(Twist(0.2, 0.0, 0.0), 7, i + 1, clock.now))
+    assert daemon._counters["teleop_commands"] == 100
+    assert daemon._counters["control_steps"] == 0  # the loop's period steps with it
     assert daemon._teleop.twist == Twist(0.2, 0.0, 0.0)
-    assert daemon._teleop.received_at == clock.now
 
 
 async def test_a_flood_is_reported_in_the_log_at_most_every_ten_seconds(caplog: pytest.LogCaptureFixture) -> None:
