@@ -25,8 +25,6 @@ import os
 import time
 from collections.abc import Callable, Sequence
 
-import numpy as np
-
 from drivers.gpiod.events import EVENT_SIZE, EdgeEventDecoder
 from drivers.gpiod.lines import (
     EventLines,
@@ -226,9 +224,9 @@ class GpiodEncoders:
 
     def decode(self, data: bytes) -> None:
         """Decode raw event records (the bulk path; public for the benchmark)."""
-        illegal_before = int(self._decoder.quadrature.illegal.sum())
+        illegal_before = sum(self._decoder.quadrature.illegal)
         lost = self._decoder.feed(data) if data else self._decoder.flush()
-        if lost or int(self._decoder.quadrature.illegal.sum()) != illegal_before:
+        if lost or sum(self._decoder.quadrature.illegal) != illegal_before:
             self._degraded = True
 
     async def _publish(self, on_ticks: Callable[[WheelTicks], None]) -> None:
@@ -246,13 +244,12 @@ class GpiodEncoders:
         now = self._clock()
         if self._connected:
             now_us = self._decoder.to_ticks_us(self._time.to_kernel_ns(now))
-            speeds = self._speed.update(self._decoder.quadrature, now_us) * self._radians_per_count
+            speeds = [v * self._radians_per_count for v in self._speed.update(self._decoder.quadrature, now_us)]
         else:
-            speeds = np.zeros(len(self._wiring))
+            speeds = [0.0] * len(self._wiring)
         degraded, self._degraded = self._degraded or not self._connected, False
         c = self._decoder.quadrature.counts
-        s = [float(v) for v in speeds]
-        return WheelTicks(now, (int(c[0]), int(c[1]), int(c[2]), int(c[3])), (s[0], s[1], s[2], s[3]), degraded)
+        return WheelTicks(now, (c[0], c[1], c[2], c[3]), (speeds[0], speeds[1], speeds[2], speeds[3]), degraded)
 
 
 __all__ = ["GpioUnavailableError", "GpiodEncoders", "KernelClock"]

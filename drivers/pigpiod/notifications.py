@@ -49,16 +49,16 @@ class TickClock:
     def unwrap(self, ticks: npt.NDArray[np.uint32]) -> npt.NDArray[np.int64]:
         """Ticks on one unbounded time line (microseconds since the first anchor).
 
-        Each step is read as a signed 32-bit difference, so wrap-arounds and small backward steps both come out
-        right, as long as consecutive ticks are less than 35 minutes apart.
+        Each tick is read as a signed 32-bit difference from the last tick unwrapped before it (the batch before, or
+        an anchor), so wrap-arounds and small backward steps both come out right, as long as a batch's ticks are
+        less than 35 minutes from it (the encoders re-anchor every few seconds).
         """
         if not len(ticks):
             return np.zeros(0, dtype=np.int64)
-        steps = np.empty(len(ticks), dtype=np.int64)
-        first = (int(ticks[0]) - self._last_tick) & 0xFFFFFFFF  # the signed 32-bit difference, in plain integers
-        steps[0] = first - (1 << 32) if first & 0x80000000 else first
-        steps[1:] = (ticks[1:] - ticks[:-1]).view(np.int32)
-        unwrapped = self._last_unwrapped + np.cumsum(steps)
+        # three whole-batch operations: the difference wraps in uint32, and read as int32 it is the signed step
+        steps = np.subtract(ticks, np.uint32(self._last_tick), dtype=np.uint32).view(np.int32)
+        unwrapped = steps.astype(np.int64)
+        unwrapped += self._last_unwrapped
         self._last_tick = int(ticks[-1])
         self._last_unwrapped = int(unwrapped[-1])
         return unwrapped

@@ -35,8 +35,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-import numpy as np
-
 from drivers.backoff import Backoff
 from drivers.pacing import next_tick, sleep_until
 from drivers.pigpiod.client import PigpioCommandError, PigpiodUnavailableError, PigpioLink, open_notification_socket
@@ -304,11 +302,10 @@ class PigpioEncoders:
         reports = decode_reports(data)
         self._reports += len(reports)
         lost = self._gaps.check(reports["seq"])
-        illegal_before = int(self._decoder.illegal.sum())
         flags = reports["flags"]
         changes = reports[flags == 0] if flags.any() else reports  # watchdog, alive, event reports carry no edge
-        self._decoder.decode(self._tick_clock.unwrap(changes["tick"]), changes["level"].astype(np.uint32))
-        if lost or int(self._decoder.illegal.sum()) != illegal_before:
+        illegal = self._decoder.decode(self._tick_clock.unwrap(changes["tick"]), changes["level"])
+        if lost or illegal:
             self._degraded = True
 
     async def _resync(self, link: PigpioLink) -> None:
@@ -354,13 +351,13 @@ class PigpioEncoders:
         """The wheel ticks now (of the reports read so far); clears the degraded flag once reported."""
         now = self._clock()
         if self._connected and self._tick_clock is not None:
-            speeds = self._speed.update(self._decoder, self._tick_clock.to_unwrapped(now)) * self._radians_per_count
+            counts_per_s = self._speed.update(self._decoder, self._tick_clock.to_unwrapped(now))
+            speeds = [v * self._radians_per_count for v in counts_per_s]
         else:
-            speeds = np.zeros(len(self._wiring))
+            speeds = [0.0] * len(self._wiring)
         degraded, self._degraded = self._degraded or not self._connected, False
         c = self._decoder.counts
-        s = [float(v) for v in speeds]
-        return WheelTicks(now, (int(c[0]), int(c[1]), int(c[2]), int(c[3])), (s[0], s[1], s[2], s[3]), degraded)
+        return WheelTicks(now, (c[0], c[1], c[2], c[3]), (speeds[0], speeds[1], speeds[2], speeds[3]), degraded)
 
 
 def _wake(edge: asyncio.Future[None]) -> None:
