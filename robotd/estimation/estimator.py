@@ -99,6 +99,22 @@ class LearntNoise:
     heading_noise_scale: float = 1.0
 
 
+@dataclass(frozen=True, slots=True)
+class _FixToLearn:
+    """A fix that was fused, or not, and what the filter has yet to learn from it (Estimator.settle)."""
+
+    verdict: Verdict
+    t_meas: float
+    inn: ekf.Innovation
+    r: float
+    prior: State
+    anchor: Anchor
+    stated: float
+    x: float
+    y: float
+    timed: bool
+
+
 class StreamPace:
     """An odometry stream's sampling interval (a running mean of the gaps between its samples), and how late a sample
     may come before the stream has paused."""
@@ -183,6 +199,7 @@ class Estimator:
         self._wheels = WheelFeed(TickKinematics(geometry, counts_per_rev), c.predict_period_s)
         # the state at the newest step: (newest anchor, that step's list index, the state there), or None
         self._newest: tuple[Anchor, int, State] | None = None
+        self._unsettled: _FixToLearn | None = None  # the last fix, until what it teaches is learnt (settle)
         self._aligner = HeadingAligner(c.heading_align_m, self._offset, enabled=c.heading_align_m > 0.0)
         self._heading_check = HeadingCheck()
         self.counters: dict[str, int] = dict.fromkeys(
@@ -232,6 +249,7 @@ class Estimator:
 
     def on_wheels(self, t: float, ticks: tuple[int, int, int, int]) -> None:
         """Cumulative encoder counts (FL FR RL RR) at time t."""
+        self.settle()
         wheels = self._wheels
         if not wheels.accepts(t):
             self.counters["dropped_out_of_order" if math.isfinite(t) else "dropped_non_finite"] += 1
@@ -259,6 +277,7 @@ class Estimator:
 
     def on_twist(self, t: float, vx: float, vy: float, wz: float) -> None:
         """A measured body twist (m/s, rad/s) at time t, held until the next one."""
+        self.settle()
         if not (math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy) and math.isfinite(wz)):
             self.counters["dropped_non_finite"] += 1
             return
@@ -364,7 +383,9 @@ class Estimator:
     # --- fixes ------------------------------------------------------------------------------------
 
     def on_fix(self, t: float, x: float, y: float, t_meas: float) -> Diagnostics | None:
-        """An IPS fix of the beacon (m) that arrived at t and was measured at t_meas; returns its record."""
+        """An IPS fix of the beacon (m) that arrived at t and was measured at t_meas; returns its record. What the
+        filter learns from it waits for `settle` (the next input's, or the caller's)."""
+        self.settle()
         counters = self.counters
         counters["fixes"] += 1
         if not (isfinite(t) and isfinite(x) and isfinite(y)):
@@ -430,17 +451,30 @@ class Estimator:
         history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
+        self._unsettled = _FixToLearn(verdict, t_meas, inn, r, prior, anchor, stated, x, y, timed)
+        return Diagnostics(
+            t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)
+        )
+
+    def settle(self) -> None:
+        """Learn from the last fix: the process noise, the calibration, the heading's re-alignment (a window's fit
+        can take milliseconds). `on_fix` leaves this to the next input, which settles first, or to the caller, so
+        that the fix's pose can be published before (the daemon); the numbers are the same either way."""
+        fix, self._unsettled = self._unsettled, None
+        if fix is None:
+            return
         if self._process_noise is not None:
-            self._learn_process_noise(self._process_noise, verdict, t_meas, inn, r, (prior, anchor))
-        if verdict is Verdict.ACCEPTED and self._calibrator is not None:
-            self._calibrate(stated, x, y, timed=timed)
+            fused = (fix.prior, fix.anchor)
+            self._learn_process_noise(self._process_noise, fix.verdict, fix.t_meas, fix.inn, fix.r, fused)
+        if fix.verdict is Verdict.ACCEPTED and self._calibrator is not None:
+            self._calibrate(fix.stated, fix.x, fix.y, timed=fix.timed)
+        aligner, track = self._aligner, self._track
         if aligner.enabled and track.t and track.dist[-1] >= aligner.next_fit:
             self._maybe_realign()
         if not self.modes.heading_known and self.modes.placed:
             self._provisional_heading()
-        return Diagnostics(
-            t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)
-        )
+        # an output taken before this (the fix's own pose) carried the state with the noise and scales then in use
+        self._newest = None
 
     def _learn_process_noise(  # noqa: PLR0917 - the fix as on_fix has it
         self,

@@ -192,10 +192,12 @@ def replay(log: SensorLog, config: RobotdConfig, start: calibration_store.Saved 
                 est.on_twist(event.t, event.vx, event.vy, event.wz)
         elif isinstance(event, IpsFix):
             diagnostic = robotd.on_fix(event.t, event.x, event.y, event.t_meas)
+            robotd.settle()  # what it learns from the fix, at once: the daemon's later outputs are the same
             if diagnostic is not None:
                 diagnostics.append(diagnostic)
             for _, baseline in baselines:
                 baseline.on_fix(event.t, event.x, event.y, event.t_meas)
+                baseline.settle()
             if math.isfinite(event.x) and math.isfinite(event.y) and math.isfinite(event.stated_t):
                 fixes.append((event.stated_t, event.x, event.y))
             if inputs:

@@ -116,6 +116,7 @@ def score(
             estimator.on_twist(event.t, event.vx, event.vy, event.wz)  # type: ignore[union-attr]
         elif kind is IpsFix:
             d = estimator.on_fix(event.t, event.x, event.y, event.t_meas)  # type: ignore[union-attr]
+            estimator.settle()
             if d is None or d.verdict not in (Verdict.ACCEPTED, Verdict.GATED, Verdict.UNCONFIRMED):
                 continue
             s_xx, s_xy, s_yy = d.s

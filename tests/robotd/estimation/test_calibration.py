@@ -15,9 +15,10 @@ from robotd.config.model import RobotdConfig
 from robotd.daemon import calibration_store
 from robotd.estimation import calibration
 from robotd.estimation.calibration import Calibration, CalibrationLimits, Calibrator
-from robotd.logs.sensorlog import IpsFix, SensorLog, Truth
+from robotd.estimation.estimator import Estimator
+from robotd.logs.sensorlog import IpsFix, SensorLog, Truth, Wheels
 from robotd.offline.metrics import Trajectory, score
-from robotd.offline.replay import ReplayResult, replay, write_outputs
+from robotd.offline.replay import ReplayResult, replay, robot_from_log, write_outputs
 
 
 def _with_meta_robot(log: SensorLog, **robot: float) -> SensorLog:
@@ -302,3 +303,34 @@ def test_a_replay_started_from_what_another_log_taught_is_calibrated_from_its_st
     assert _rmse_before(started, learner, 15.0) < 0.95 * _rmse_before(fresh, learner, 15.0)
     assert started.consistency["ekf"].inside_95 is not None
     assert started.consistency["ekf"].inside_95 >= 0.85
+
+
+def _estimator(config: RobotdConfig, log: SensorLog) -> Estimator:
+    geometry, offset, cpr, _ = robot_from_log(log, config)
+    return Estimator(config.ekf, geometry, offset, cpr, default_latency_s=config.marvelmind.default_latency_s)
+
+
+def test_what_a_fix_teaches_waits_for_settle_and_a_pose_taken_before_changes_no_later_estimate() -> None:
+    config = sim_config(ips_offset_m=(0.1, 0.04))
+    log = simulated(config, 4, scenario="random")
+    at_once, as_the_daemon = _estimator(config, log), _estimator(config, log)
+    outputs: tuple[list[tuple[float, ...]], list[tuple[float, ...]]] = ([], [])
+    windows_closed_by_settle = 0
+    for event in log.events:
+        if type(event) is IpsFix:
+            at_once.on_fix(event.t, event.x, event.y, event.t_meas)
+            at_once.settle()
+            as_the_daemon.on_fix(event.t, event.x, event.y, event.t_meas)
+            windows = as_the_daemon.calibration.windows
+            as_the_daemon.pose(event.t)  # the daemon publishes the fix's pose before the filter learns from it
+            as_the_daemon.settle()
+            windows_closed_by_settle += as_the_daemon.calibration.windows - windows
+        elif type(event) is Wheels:
+            for estimator, taken in zip((at_once, as_the_daemon), outputs, strict=True):
+                estimator.on_wheels(event.t, event.ticks)
+                position = estimator.position(event.t)
+                if position is not None:
+                    taken.append((*position[:3], *position[3]))
+    assert windows_closed_by_settle == at_once.calibration.windows > 0  # every window's fit came in settle
+    assert outputs[0] == outputs[1]
+    assert len(outputs[0]) > 1000
