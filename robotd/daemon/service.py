@@ -3,7 +3,7 @@
 Theory of operation. Producers call back into the daemon from the loop (no threads): the encoder source hands
 `WheelTicks` at its publish rate (-> estimator prediction, wheel speeds for the control loop, the sensor log), the
 Marvelmind reader hands parser events (-> estimator update, and a pose published at once so a fix reaches the pose
-socket without waiting for the next period; what the filter learns from the fix follows SETTLE_AFTER_S later), and the
+socket without waiting for the next period; what the filter learns from the fix waits for the next input), and the
 teleop socket hands validated commands (-> while the wheels are not driven the control loop is woken at once, so a
 command that starts them reaches the motors without waiting for the next period; while they are, the loop reads the
 socket itself at each period). The control loop steps the `MotionController` at `control.rate_hz` and writes the duties;
@@ -68,10 +68,6 @@ log = logging.getLogger("robotd")
 ZERO = (0.0, 0.0, 0.0, 0.0)
 STOP = Twist(0.0, 0.0, 0.0)
 STATUS_PERIOD_S = 1.0
-# after a fix's pose is published, the filter waits this long before it learns from the fix: on the virtual robot
-# (2 cores) a window's fit run at once kept the pose's readers off a core (robotd bench daemon, fix frame -> pose:
-# p99 7.0 ms; 5 ms later, 2.1 ms); the learning is in place long before the next fix (8-16 Hz)
-SETTLE_AFTER_S = 0.005
 MOTORS_FIRST_RETRY_S = 0.2
 UNKNOWN_SPEEDS = (math.nan, math.nan, math.nan, math.nan)
 
@@ -215,10 +211,9 @@ class Daemon:
             if self._recorder is not None:
                 self._recorder.write(sensorlog.IpsFix(event.arrival, event.x, event.y, event.z, t_meas))
             self._publish_pose()  # a fix reaches the pose socket now, not at the next period
-            # then, a moment later, what the filter learns from it (a calibration window's fit takes milliseconds):
-            # not on the fix's way to the pose socket, nor in the way of the pose's readers (the next input settles
-            # it first if it comes sooner: the numbers are the same either way)
-            asyncio.get_running_loop().call_later(SETTLE_AFTER_S, self.estimator.settle)
+            # what the filter learns from the fix (a calibration window's fit takes milliseconds) waits for the next
+            # input, which settles it first (Estimator.settle): not on the fix's way to the pose socket, nor in the
+            # way of the pose's readers, and no wake-up of its own
         elif isinstance(event, FixUnavailable):
             self.estimator.on_fix_lost(event.arrival)
             if self._recorder is not None:
