@@ -12,6 +12,8 @@ from typing import Any
 import pytest
 from inprocess_daemon import Harness, daemon_config
 
+from drivers.marvelmind.events import Position
+
 
 @pytest.fixture
 def short_dir() -> Iterator[Path]:
@@ -58,3 +60,32 @@ async def test_the_published_pose_is_the_estimate_at_the_daemon_s_clock_with_its
     assert covariance[0] > newest.cov[0]  # along the motion: the process noise of 0.15 m of travel
     assert covariance[8] > newest.cov[8]  # the heading too (slip grows with distance)
     assert covariance[0] == estimator.pose(clock.now).cov[0]
+
+
+def test_a_fix_s_pose_is_published_before_the_filter_learns_from_it_and_the_next_wheel_sample_settles_it(
+    short_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    harness = Harness(daemon_config(short_dir))
+    daemon, clock = harness.daemon, harness.clock
+    calls: list[str] = []
+    settle, publish = daemon.estimator.settle, daemon._publish_pose
+
+    def recorded_settle() -> None:
+        if daemon.estimator._unsettled is not None:  # a fix to learn from
+            calls.append("learn")
+        settle()
+
+    def recorded_publish() -> None:
+        calls.append("pose")
+        publish()
+
+    monkeypatch.setattr(daemon.estimator, "settle", recorded_settle)
+    monkeypatch.setattr(daemon, "_publish_pose", recorded_publish)
+    for _ in range(10):  # odometry from well before the fix was measured
+        harness.tick()
+    calls.clear()
+    fix = Position(clock.now, clock.now - 0.05, 0.0, 0.0, 0.0, 5, 0, 0.0, 0, 0, 0.05, 0x11)
+    daemon._on_marvelmind(fix)
+    assert calls == ["pose"]
+    harness.tick()
+    assert calls == ["pose", "learn"]
