@@ -90,6 +90,26 @@ def test_four_wheels_in_one_stream_each_count_their_own() -> None:
     assert decoder.illegal == [0, 0, 0, 0]
 
 
+def test_more_than_four_wheels_are_decoded_four_at_a_time_each_its_own() -> None:
+    wiring = [EncoderWiring(2 * k + 2, 2 * k + 3, -1 if k == 4 else 1) for k in range(6)]  # GPIOs 2-13
+    moves = [[1] * 50, [-1] * 30, [1, -1] * 10, [1] * 7, [1] * 21, [-1] * 3 + [1] * 12]
+    streams = []
+    for index, (encoder, wheel_moves) in enumerate(zip(wiring, moves, strict=True)):
+        positions = walk(0, wheel_moves)
+        ticks = np.arange(len(positions), dtype=np.int64) * 60 + index * 10
+        streams.append(
+            (ticks, levels_of_positions(positions, encoder.a, encoder.b), (1 << encoder.a) | (1 << encoder.b))
+        )
+    ticks, levels = merge_streams(streams)
+    decoder = QuadratureDecoder(wiring, "x4", 0)
+    decoder.decode(ticks[:100], levels[:100])  # two batches: the second group's state carries over too
+    decoder.decode(ticks[100:], levels[100:])
+    assert decoder.counts == [50, -30, 0, 7, -21, 9]
+    assert decoder.illegal == [0] * 6
+    last_ticks = [int(stream[0][-1]) for stream in streams]
+    assert decoder.last_edge_us == [t if n else -1 for t, n in zip(last_ticks, [50, 30, 20, 7, 21, 15], strict=True)]
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     moves=st.lists(st.sampled_from([1, -1]), min_size=1, max_size=400),
