@@ -297,6 +297,12 @@ class EkfConfig:
     turn_heading_sigma_rad: float = setting(
         0.05, "Heading error from turning (wheel scrub), std (rad) per sqrt(radian turned).", non_negative
     )
+    odom_turn_sigma_m: float = setting(
+        0.003,
+        "Odometry position error from turning, std per axis (m) per sqrt(radian turned): wheels of unequal traction"
+        " move the centre of a robot turning on the spot, which its odometry reads as no motion at all.",
+        non_negative,
+    )
     predict_period_s: float = setting(
         0.05,
         "Wheel ticks are integrated into one prediction at most this often (0: every sample); the body "
@@ -431,6 +437,7 @@ def paper_preset(ekf: EkfConfig) -> EkfConfig:
         odom_across_sigma_m=0.0,
         slip_heading_sigma_rad=0.0,
         turn_heading_sigma_rad=0.0,
+        odom_turn_sigma_m=0.0,
         midpoint_heading=False,
         step_sigma_v_mps=ekf.paper_sigma_v_mps,
         step_sigma_w_rad_s=ekf.paper_sigma_w_rad_s,

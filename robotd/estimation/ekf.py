@@ -88,7 +88,8 @@ class ControlNoise:
     """Control noise M = diag(vx, vy, wz variances) per unit of time and of motion, mapped through G (Q = G M G^T).
 
     With speed = hypot(vx, vy), the variances added over one step are
-    along-track position: lin2 * speed * dt (m^2), heading: (slip2 * speed + turn2 * |wz|) * dt (rad^2),
+    along-track position: lin2 * speed * dt (m^2), each position axis: spin2 * |wz| * dt (m^2, the centre of a robot
+    turning moves by its wheels' unequal traction), heading: (slip2 * speed + turn2 * |wz|) * dt (rad^2),
     plus a constant per-step (dt^2) term on the speeds, const_v2 and const_w2 (the paper's eq. 9).
     A robot at rest does not grow uncertain unless the per-step term says so.
     """
@@ -99,6 +100,7 @@ class ControlNoise:
     turn2: float = 0.0
     const_v2: float = 0.0
     const_w2: float = 0.0
+    spin2: float = 0.0  # position variance per axis per radian turned (m^2/rad)
 
 
 def displacement(
@@ -160,8 +162,9 @@ def predict_considering(  # noqa: PLR0917 - the paper's symbols as plain floats:
     # The control errors' variances over this step, times dt^2 (G carries dt twice): the random-walk terms grow with
     # distance, not time (speed dt), the paper's per-step terms with dt^2
     dt2 = dt * dt
-    q_vx = noise.lin2 * speed * dt + noise.const_v2 * dt2
-    q_vy = noise.lat2 * speed * dt + noise.const_v2 * dt2
+    spin = noise.spin2 * abs(wz) * dt  # a robot turning on the spot moves its centre too
+    q_vx = noise.lin2 * speed * dt + noise.const_v2 * dt2 + spin
+    q_vy = noise.lat2 * speed * dt + noise.const_v2 * dt2 + spin
     q_wz = (noise.slip2 * speed + noise.turn2 * abs(wz)) * dt + noise.const_w2 * dt2
     a = -dy  # eq. 6: d x'/d theta
     b = dx  # eq. 6: d y'/d theta

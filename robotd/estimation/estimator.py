@@ -170,6 +170,7 @@ class Estimator:
             turn2=c.turn_heading_sigma_rad**2,
             const_v2=c.step_sigma_v_mps**2,
             const_w2=c.step_sigma_w_rad_s**2,
+            spin2=c.odom_turn_sigma_m**2,
         )
         self.modes = Modes(heading_known=c.initial_sigma[2] <= c.unknown_heading_sigma_rad)
         self._track = OdometryTrack(midpoint=c.midpoint_heading)
@@ -236,7 +237,10 @@ class Estimator:
                 c.process_noise_scale_max,
                 *starts,
                 noise=OdometryNoise(
-                    0.5 * (control_noise.lin2 + control_noise.lat2), control_noise.slip2, control_noise.turn2
+                    0.5 * (control_noise.lin2 + control_noise.lat2),
+                    control_noise.slip2,
+                    control_noise.turn2,
+                    control_noise.spin2,
                 ),
             )
             self._use_noise_scales(self._process_noise)

@@ -113,7 +113,12 @@ class Predictor:
         the heading's (the paper's per-step terms unchanged)."""
         n = self.prior_noise
         self.noise = dataclasses.replace(
-            n, lin2=n.lin2 * position, lat2=n.lat2 * position, slip2=n.slip2 * heading, turn2=n.turn2 * heading
+            n,
+            lin2=n.lin2 * position,
+            lat2=n.lat2 * position,
+            spin2=n.spin2 * position,
+            slip2=n.slip2 * heading,
+            turn2=n.turn2 * heading,
         )
 
     def move(self, state: State, u: Twist3, dt: float) -> State:

@@ -69,11 +69,13 @@ MIN_MOTION_M = 0.005  # the robot at rest since the fix before when it moved les
 
 class OdometryNoise(NamedTuple):
     """The configured odometry noise at scale 1: position variance per axis and metre driven (m^2/m), heading
-    variance per metre driven (rad^2/m) and per radian turned (rad^2/rad)."""
+    variance per metre driven (rad^2/m) and per radian turned (rad^2/rad), position variance per axis and radian
+    turned (m^2/rad)."""
 
     position_var_per_m: float
     heading_var_per_m: float
     heading_var_per_rad: float
+    position_var_per_rad: float = 0.0
 
 
 class Pose(NamedTuple):
@@ -201,7 +203,7 @@ class ProcessNoiseScale:
         turning[0, 2], turning[1, 2] = -dy, dx
         turned = abs(travel.turned - travel_before.turned)
         noise = self.noise
-        position_q = noise.position_var_per_m * driven
+        position_q = noise.position_var_per_m * driven + noise.position_var_per_rad * turned
         heading_q = noise.heading_var_per_m * driven + noise.heading_var_per_rad * turned
         # per unit of each scale: the position's on x and y; the heading's, added evenly over the displacement, on the
         # heading and, through the displacement still to come (a third of it on average), on the position

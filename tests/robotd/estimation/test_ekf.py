@@ -237,3 +237,19 @@ def test_the_odometry_scales_share_is_the_augmented_schmidt_filter_s() -> None:
     assert np.reshape(ekf.cov_full(p), (3, 3)) == pytest.approx(aug[:3, :3], abs=1e-9)
     assert np.reshape(sens, (3, 3)) @ np.diag(scale_var) == pytest.approx(aug[:3, 3:], abs=1e-9)
     assert float(np.abs(aug[:3, 3:]).max()) > 1e-4  # the pose does depend on the scales: the check has teeth
+
+
+def test_turning_on_the_spot_grows_the_position_by_its_own_term_per_radian_only() -> None:
+    p: ekf.Cov = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    noise = ekf.ControlNoise(lin2=4e-4, lat2=9e-4, turn2=2.5e-3, spin2=1e-5)
+    turned = 0.0
+    x = y = th = 0.0
+    for _ in range(50):  # half a turn on the spot at 1.57 rad/s, 20 ms steps
+        x, y, th, p = ekf.predict(x, y, th, p, 0.0, 0.0, math.pi / 2, 0.02, noise, midpoint=True)
+        turned += math.pi / 2 * 0.02
+    assert (x, y) == (0.0, 0.0)
+    assert p[0] == pytest.approx(1e-5 * turned)
+    assert p[3] == pytest.approx(1e-5 * turned)
+    assert p[1] == pytest.approx(0.0, abs=1e-15)  # as much along every axis
+    exact = ekf.predict(0.0, 0.0, 0.0, (0.0,) * 6, 0.0, 0.0, 1.0, 0.02, ekf.ControlNoise(turn2=2.5e-3), midpoint=True)
+    assert exact[3][0] == 0.0  # without the term a turn on the spot leaves the position exact
