@@ -41,7 +41,6 @@ _A_EDGES = np.array([0, 0, 1, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 1, 0, 0], dtype=bool
 _X1_EDGES = np.array([0, 0, 1, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0], dtype=bool)
 
 Decoding = Literal["x1", "x2", "x4"]
-_WHEEL_INDEX = np.arange(4)
 
 
 def transition_table(decoding: Decoding) -> npt.NDArray[np.int8]:
@@ -69,6 +68,7 @@ class EncoderWiring:
 # few operations on 1-D arrays, each costing microseconds of fixed overhead whatever its length, where one array of
 # states per wheel took about twice as many (robotd bench encoders). More wheels are decoded four at a time.
 GROUP_WHEELS = 4
+_WHEEL_INDEX = np.arange(GROUP_WHEELS)
 _FIELD_BITS = 16  # a wheel's field in a packed entry: its count + 1, so that a batch's sum never borrows
 _FIELD_MASK = (1 << _FIELD_BITS) - 1
 _MAX_BATCH = (1 << _FIELD_BITS) // 2 - 1  # reports whose field sums stay below 2**16
@@ -153,9 +153,10 @@ class QuadratureDecoder:
         for start in range(0, len(levels), _MAX_BATCH):
             batch = np.ascontiguousarray(levels[start : start + _MAX_BATCH], dtype="<u4")
             halves = batch.view("<u2").reshape(-1, 2)  # little-endian on any host: the low half first
+            ticks = ticks_us[start : start + _MAX_BATCH]
             first_wheel = 0
             for group in self._groups:
-                illegal += self._decode_group(group, first_wheel, ticks_us[start : start + _MAX_BATCH], halves)
+                illegal += self._decode_group(group, first_wheel, ticks, halves)
                 first_wheel += group.wheels
         return illegal
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -73,17 +74,25 @@ def test_direction_sign_flips_the_count() -> None:
     assert decode(walk(0, [1] * 8), "x4", sign=-1).counts[0] == -8
 
 
-def test_four_wheels_in_one_stream_each_count_their_own() -> None:
-    wiring = [EncoderWiring(4, 17), EncoderWiring(27, 22), EncoderWiring(5, 6), EncoderWiring(2, 3, -1)]
-    moves = [[1] * 50, [-1] * 30, [1, -1] * 10, [1] * 7]
+def _walks_in_one_stream(
+    wiring: list[EncoderWiring], moves: list[list[int]], step_us: int
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint32], list[int]]:
+    """Each encoder walking its moves one step every `step_us` (each 10 us after the one before it), merged into one
+    bank stream: its ticks and level words, and each encoder's last step's tick."""
     streams = []
     for index, (encoder, wheel_moves) in enumerate(zip(wiring, moves, strict=True)):
         positions = walk(0, wheel_moves)
-        ticks = np.arange(len(positions), dtype=np.int64) * 40 + index * 10
+        ticks = np.arange(len(positions), dtype=np.int64) * step_us + index * 10
         streams.append(
             (ticks, levels_of_positions(positions, encoder.a, encoder.b), (1 << encoder.a) | (1 << encoder.b))
         )
     ticks, levels = merge_streams(streams)
+    return ticks, levels, [int(stream[0][-1]) for stream in streams]
+
+
+def test_four_wheels_in_one_stream_each_count_their_own() -> None:
+    wiring = [EncoderWiring(4, 17), EncoderWiring(27, 22), EncoderWiring(5, 6), EncoderWiring(2, 3, -1)]
+    ticks, levels, _ = _walks_in_one_stream(wiring, [[1] * 50, [-1] * 30, [1, -1] * 10, [1] * 7], 40)
     decoder = QuadratureDecoder(wiring, "x4", 0)
     decoder.decode(ticks, levels)
     assert decoder.counts == [50, -30, 0, -7]
@@ -93,21 +102,13 @@ def test_four_wheels_in_one_stream_each_count_their_own() -> None:
 def test_more_than_four_wheels_are_decoded_four_at_a_time_each_its_own() -> None:
     wiring = [EncoderWiring(2 * k + 2, 2 * k + 3, -1 if k == 4 else 1) for k in range(6)]  # GPIOs 2-13
     moves = [[1] * 50, [-1] * 30, [1, -1] * 10, [1] * 7, [1] * 21, [-1] * 3 + [1] * 12]
-    streams = []
-    for index, (encoder, wheel_moves) in enumerate(zip(wiring, moves, strict=True)):
-        positions = walk(0, wheel_moves)
-        ticks = np.arange(len(positions), dtype=np.int64) * 60 + index * 10
-        streams.append(
-            (ticks, levels_of_positions(positions, encoder.a, encoder.b), (1 << encoder.a) | (1 << encoder.b))
-        )
-    ticks, levels = merge_streams(streams)
+    ticks, levels, last_ticks = _walks_in_one_stream(wiring, moves, 60)
     decoder = QuadratureDecoder(wiring, "x4", 0)
     decoder.decode(ticks[:100], levels[:100])  # two batches: the second group's state carries over too
     decoder.decode(ticks[100:], levels[100:])
     assert decoder.counts == [50, -30, 0, 7, -21, 9]
     assert decoder.illegal == [0] * 6
-    last_ticks = [int(stream[0][-1]) for stream in streams]
-    assert decoder.last_edge_us == [t if n else -1 for t, n in zip(last_ticks, [50, 30, 20, 7, 21, 15], strict=True)]
+    assert decoder.last_edge_us == last_ticks  # every wheel's last step was an edge
 
 
 @settings(max_examples=60, deadline=None)

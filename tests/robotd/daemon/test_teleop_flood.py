@@ -280,6 +280,7 @@ def test_a_command_the_driving_loop_read_itself_does_not_step_the_controller_aga
     assert daemon._counters["teleop_commands"] == 100
     assert daemon._counters["control_steps"] == 0  # the loop's period steps with it
     assert daemon._teleop.twist == Twist(0.2, 0.0, 0.0)
+    assert daemon._teleop.received_at == clock.now
 
 
 async def test_a_flood_is_reported_in_the_log_at_most_every_ten_seconds(caplog: pytest.LogCaptureFixture) -> None:
