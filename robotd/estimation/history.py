@@ -148,7 +148,11 @@ class Predictor:
         # heading: a short track's fit improves the estimate but is no proof (its residuals are few, its errors may
         # persist), so it does not make the position more certain
         speed2 = vx * vx + vy * vy
-        xx, xy, _, yy, _, tt = p
+        # the position's variance from before the step, not the prediction's: its heading terms grew it across the
+        # guessed direction of motion by the distance times the unknown heading's sigma (tens of times the distance's
+        # square), and not along it, as if the guess were the likeliest heading
+        xx, xy, _, yy, _, _ = state[3]
+        tt = p[5]
         if self.modes.placed:
             shrink, turn = self.provisional
             q = speed2 * dt * UNKNOWN_HEADING_CORRELATION_S

@@ -329,6 +329,9 @@ def test_with_the_heading_unknown_odometry_moves_a_placed_position_along_no_gues
     assert math.hypot(b.x, b.y) < 0.01
     assert b.cov[0] > 0.05**2  # the speed, in a direction not known, over about a fix interval
     assert b.cov[4] > 0.05**2
+    # as much across the guessed heading (the start's x axis, along which the wheels drove) as along it: the guess
+    # is no likelier than any other heading (a linearisation about it grew the variance across it alone, tenfold)
+    assert b.cov[4] == pytest.approx(b.cov[0], rel=0.05)
     assert b.cov[1] == 0.0
     assert b.cov[2] == 0.0
     assert b.theta == pytest.approx(a.theta)
