@@ -19,9 +19,11 @@ def next_tick(now: float, period_s: float) -> float:
     return (math.floor(now / period_s) + 1) * period_s
 
 
-async def sleep_until(deadline: float) -> None:
-    """Sleep until the loop's clock reaches `deadline` (at once when it has)."""
-    loop = asyncio.get_running_loop()
+async def sleep_until(deadline: float, loop: asyncio.AbstractEventLoop | None = None) -> None:
+    """Sleep until the loop's clock reaches `deadline` (at once when it has); `loop`: the running loop, when the
+    caller holds it (Python 3.11 asks the kernel for the process id to find it: a system call per period saved)."""
+    if loop is None:
+        loop = asyncio.get_running_loop()
     if deadline <= loop.time():
         await asyncio.sleep(0)
         return

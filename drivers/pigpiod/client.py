@@ -250,6 +250,9 @@ def probe(host: str, port: int, timeout_s: float) -> None:
         raise PigpiodUnavailableError(host, port, error) from error
 
 
+ANSWERS_READ_BYTES = 1 << 16  # a read of the command pipe's answers: far more than a period of motor writes owes
+
+
 class CommandPipe:
     """Commands to pigpiod sent without waiting for their answers, from plain (not asyncio) code; never blocks.
 
@@ -307,7 +310,7 @@ class CommandPipe:
         """Read the answers that have arrived (never waits); raise PigpioCommandError for a refused command."""
         while True:
             try:
-                data = self._sock.recv(1 << 16)
+                data = self._sock.recv(ANSWERS_READ_BYTES)
             except BlockingIOError:
                 break
             except OSError:
@@ -317,15 +320,16 @@ class CommandPipe:
                 self.broken = True
                 raise ConnectionResetError("pigpiod closed the command pipe")
             self._unread += data
+            if len(data) < ANSWERS_READ_BYTES:  # that was all: no second call only to hear it would block
+                break
         whole = len(self._unread) - len(self._unread) % COMMAND.size
+        if not whole:
+            return
         answers, self._unread = bytes(self._unread[:whole]), self._unread[whole:]
-        for offset in range(0, whole, COMMAND.size):
-            answer = answers[offset : offset + COMMAND.size]
-            self._owed -= 1
-            result = decode_result(answer)
-            if result < 0:
-                cmd, p1, p2, _ = COMMAND.unpack(answer)
-                raise PigpioCommandError(cmd, p1, p2, result)
+        self._owed -= whole // COMMAND.size
+        for cmd, p1, p2, word in COMMAND.iter_unpack(answers):
+            if word & 0x80000000:  # a negative result: pigpiod refused the command
+                raise PigpioCommandError(cmd, p1, p2, word - (1 << 32))
 
     def flush(self, timeout_s: float) -> bool:
         """Wait (blocking, at most `timeout_s`) until every command sent has been answered; whether it was. For an

@@ -328,7 +328,7 @@ class PigpioEncoders:
                 await self._until_edge(self._stream, IDLE_KEEPALIVE_S)
                 deadline = next_tick(loop.time(), period)
             else:
-                await sleep_until(deadline)
+                await sleep_until(deadline, loop)
                 deadline += period
                 if deadline <= loop.time():  # the loop stalled: back on the grid rather than a burst of publications
                     deadline = next_tick(loop.time(), period)

@@ -30,6 +30,7 @@ class ControlPacer:
         self.rest_period_s = rest_period_s(period_s, deadman_timeout_s)
         self._resting: asyncio.Future[None] | None = None  # what a loop at rest waits for: a command or the heartbeat
         self._deadline: float | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
         self.rest_wakeups = 0  # wake-ups at rest (heartbeats and commands), for the status and the tests
 
     def command_arrived(self) -> None:
@@ -38,7 +39,9 @@ class ControlPacer:
 
     async def next_step(self, *, at_rest: bool) -> None:
         """Wait for the next step (call it right after a step, with no await between, so no command slips by)."""
-        loop = asyncio.get_running_loop()
+        loop = self._loop
+        if loop is None:  # asked once: Python 3.11 finds the running loop with a system call (getpid)
+            loop = self._loop = asyncio.get_running_loop()
         if at_rest:
             # one future that the heartbeat's timer or a command completes: no timeout that cancels the task at
             # every heartbeat (a parked robot's main cost is its wake-ups), and a cancellation (the shutdown) reaches
@@ -55,7 +58,7 @@ class ControlPacer:
             return
         if self._deadline is None or self._deadline <= loop.time():  # starting, or stalled: no burst to catch up
             self._deadline = next_tick(loop.time(), self.period_s)
-        await sleep_until(self._deadline)
+        await sleep_until(self._deadline, loop)
         self._deadline += self.period_s
 
 

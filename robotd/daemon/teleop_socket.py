@@ -83,33 +83,48 @@ class TeleopSocket:
             self._readable()
 
     def _readable(self) -> None:
-        receiver, recvfrom, clock = self.receiver, self.sock.recvfrom, self.clock
+        try:
+            datagram = self._receive()
+        except (BlockingIOError, InterruptedError):
+            return  # nothing arrived (most of the driving loop's polls): no clock or budget to consult
+        clock = self.clock
         now = clock()
-        allowed = min(BATCH, int(self._budget.available(now)))
+        # the first datagram is read before the budget is asked: reading pauses while the budget is spent, so it
+        # holds at least that one whenever this runs
+        allowed = max(1, min(BATCH, int(self._budget.available(now))))
         wall_time = self.wall_clock()
         read = 0
-        while read < allowed:
+        while True:
+            read += 1
+            if datagram is not None:
+                data, address = datagram
+                outcome = self.receiver.datagram(data, clock(), wall_time, address[0])
+                if isinstance(outcome, Answer):
+                    self._answer(outcome, address)
+                elif outcome is not None:
+                    self.on_message(outcome)
+            if read >= allowed:
+                break
             try:
-                data, address = recvfrom(DATAGRAM_SIZE + 1)  # one byte more tells an oversized datagram
+                datagram = self._receive()
             except (BlockingIOError, InterruptedError):
                 break
-            except OSError as error:  # an ICMP error queued on the socket: normal on UDP, keep serving
-                log.debug("teleop socket error: %s", error)
-                read += 1
-                continue
-            read += 1
-            outcome = receiver.datagram(data, clock(), wall_time, address[0])
-            if outcome is None:
-                continue
-            if isinstance(outcome, Answer):
-                self._answer(outcome, address)
-            else:
-                self.on_message(outcome)
         self._budget.spend(read)
         if read == allowed < BATCH:  # the budget, not the queue, ended the batch: pause until it refills
             self._pause()
         if now - self._reported_at >= FLOOD_REPORT_S:
             self._report(now)
+
+    def _receive(self) -> tuple[bytes, tuple[str | int, ...]] | None:
+        """The next datagram and its source address; None for an error queued on the socket (an ICMP error: normal
+        on UDP, keep serving); BlockingIOError when nothing is queued."""
+        try:
+            return self.sock.recvfrom(DATAGRAM_SIZE + 1)  # one byte more tells an oversized datagram
+        except (BlockingIOError, InterruptedError):
+            raise
+        except OSError as error:
+            log.debug("teleop socket error: %s", error)
+            return None
 
     def _answer(self, answer: Answer, address: tuple[str | int, ...]) -> None:
         try:
