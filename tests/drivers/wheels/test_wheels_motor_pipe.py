@@ -46,7 +46,8 @@ def test_commands_are_carried_out_in_order_and_a_refusal_is_reported_at_the_next
     try:
         pipe.send([(Cmd.MODES, 12, 1), (Cmd.PWM, 12, 255), (Cmd.PWM, 12, 64)])
         wait_until(lambda: server.pwm_duty(12) == 64 / 255)
-        pipe.send([(Cmd.PWM, 99, 10)])  # no such GPIO: refused, and said at a later call (send collects first)
+        # no such GPIO: refused, and said at a later call (send collects first); the answer after it is not lost
+        pipe.send([(Cmd.PWM, 99, 10), (Cmd.PWM, 12, 32)])
 
         refusals: list[str] = []
 
@@ -59,6 +60,7 @@ def test_commands_are_carried_out_in_order_and_a_refusal_is_reported_at_the_next
 
         wait_until(refused)
         assert "PWM(99, 10)" in refusals[0]
+        assert pipe.owed == 0  # both answers counted off: a refusal does not leave them owed for ever
     finally:
         pipe.close()
 
