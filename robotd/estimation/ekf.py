@@ -325,6 +325,24 @@ def corrected_sensitivity(sens: Sens, inn: Innovation, k: Gain) -> Sens:
     )
 
 
+def sensitivity_for_scale_var(sens: Sens, old: tuple[float, float, float], new: tuple[float, float, float]) -> Sens:
+    """The sensitivity to carry on when the scales' relative variances change from `old` to `new`: a column whose
+    variance grew is shrunk by sqrt(old / new), so the scales' share of P, sum v_k j_k j_k^T, stays what it is.
+
+    predict_considering takes that share out of P with the variance in use (the m_k m_k^T terms); with a grown
+    variance and the old sensitivity it took out more than P held, and P lost its positive definiteness (a calibration
+    window that judged its fixes too few to move the odometry put the scales back on their prior: 1.7 % -> 10 %, and
+    a spin of 0.35 rad turned the heading's variance negative). The pose's error owed to the scales so far is kept;
+    from now on it grows with the larger variance. A variance that shrank leaves the column as it is (less is taken
+    out of P than it holds)."""
+    factors = [math.sqrt(o / n) if n > o else 1.0 for o, n in zip(old, new, strict=True)]
+    if factors == [1.0, 1.0, 1.0]:
+        return sens
+    f0, f1, f2 = factors
+    jx0, jx1, jx2, jy0, jy1, jy2, jt0, jt1, jt2 = sens
+    return (jx0 * f0, jx1 * f1, jx2 * f2, jy0 * f0, jy1 * f1, jy2 * f2, jt0 * f0, jt1 * f1, jt2 * f2)
+
+
 def chi2_gate_2dof(probability: float) -> float:
     """The NIS threshold that a 2-dof chi-square variable stays below with this probability: -2 ln(1 - p)."""
     return -2.0 * math.log(1.0 - probability)
@@ -350,6 +368,7 @@ __all__ = [
     "mahalanobis2",
     "predict",
     "predict_considering",
+    "sensitivity_for_scale_var",
     "update",
     "wrap_angle",
 ]

@@ -188,10 +188,10 @@ class Estimator:
             sigmas = (0.0, 0.0, 0.0, 0.0, 0.0)
             calibration = Calibration(*c.odometry_scale, default_latency_s, 0.0, sigmas)
         self._calibration = calibration
-        self._use_scales(calibration)
         x0, y0, th0 = c.initial_pose
         first = Anchor(-math.inf, x0, y0, ekf.wrap_angle(th0), ekf.cov_diag(*c.initial_sigma), None)
         self._history = History(self._track, self._predictor, first, c.history_s, keep_past=c.latency_compensation)
+        self._use_scales(calibration)
         self._last_accept_t = -math.inf
         self._twist_pace = StreamPace()  # the twist samples' period, and when their stream has paused
         self._wheel_pace = StreamPace()  # the same for wheel samples
@@ -557,7 +557,9 @@ class Estimator:
         self._predictor.scale = (kx, ky, kw)
         if self._calibrator is not None:
             sx, sy, sw = calibration.sigmas[:3]
-            self._predictor.scale_var = ((sx / kx) ** 2, (sy / ky) ** 2, (sw / kw) ** 2)
+            old, new = self._predictor.scale_var, ((sx / kx) ** 2, (sy / ky) ** 2, (sw / kw) ** 2)
+            self._predictor.scale_var = new
+            self._history.rescale_sensitivity(old, new)
 
     @property
     def clock_offset_s(self) -> float:

@@ -185,6 +185,14 @@ class History:
         """The oldest time a fix can be placed at."""
         return self.times[0]
 
+    def rescale_sensitivity(self, old: Twist3, new: Twist3) -> None:
+        """Every anchor's sensitivity to the odometry scales made fit for their relative variances changed from `old`
+        to `new` (ekf.sensitivity_for_scale_var): the states carried from them keep a positive definite P."""
+        self.anchors = [
+            a if a.sens is ekf.NO_SENS else a._replace(sens=ekf.sensitivity_for_scale_var(a.sens, old, new))
+            for a in self.anchors
+        ]
+
     def reset(self, anchor: Anchor) -> None:
         """Forget the past: the history starts again at anchor."""
         self.anchors = [anchor]

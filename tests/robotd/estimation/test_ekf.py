@@ -253,3 +253,29 @@ def test_turning_on_the_spot_grows_the_position_by_its_own_term_per_radian_only(
     assert p[1] == pytest.approx(0.0, abs=1e-15)  # as much along every axis
     exact = ekf.predict(0.0, 0.0, 0.0, (0.0,) * 6, 0.0, 0.0, 1.0, 0.02, ekf.ControlNoise(turn2=2.5e-3), midpoint=True)
     assert exact[3][0] == 0.0  # without the term a turn on the spot leaves the position exact
+
+
+def _smallest_eigenvalue(p: ekf.Cov) -> float:
+    return float(np.linalg.eigvalsh(np.reshape(ekf.cov_full(p), (3, 3))).min())
+
+
+def test_a_scale_variance_that_grows_leaves_the_covariance_positive_definite() -> None:
+    # turns made while the rotation scale was well known (1.7 %), then the scale's uncertainty put back on its 10 %
+    # prior (a calibration window that could not move the odometry), then a spin the other way
+    noise = ekf.ControlNoise(lin2=4e-4, lat2=9e-4, turn2=2.5e-3)
+    known, prior = (0.017**2,) * 3, (0.1**2,) * 3
+    x, y, th, p, sens = 0.0, 0.0, 0.0, ekf.cov_diag(0.05, 0.05, 0.05), ekf.NO_SENS
+    for _ in range(200):  # 4 s of driving in circles at 3 rad/s
+        x, y, th, p, sens = ekf.predict_considering(x, y, th, p, sens, 0.3, 0.0, 3.0, 0.02, noise, known, midpoint=True)
+
+    def spun(sens: ekf.Sens) -> ekf.Cov:
+        return ekf.predict_considering(x, y, th, p, sens, 0.3, 0.0, -3.0, 0.12, noise, prior, midpoint=True)[3]
+
+    assert _smallest_eigenvalue(spun(sens)) < 0.0  # the old sensitivity with the grown variance: not a covariance
+    rescaled = ekf.sensitivity_for_scale_var(sens, known, prior)
+    assert _smallest_eigenvalue(spun(rescaled)) > 0.0
+    # the scales' share of P is kept: sum v_k j_k j_k^T the same with the new variances and sensitivity
+    share = np.reshape(sens, (3, 3)) @ np.diag(known) @ np.reshape(sens, (3, 3)).T
+    kept = np.reshape(rescaled, (3, 3)) @ np.diag(prior) @ np.reshape(rescaled, (3, 3)).T
+    assert kept == pytest.approx(share, rel=1e-12, abs=1e-18)
+    assert ekf.sensitivity_for_scale_var(sens, prior, known) == sens  # a variance that shrank changes nothing
