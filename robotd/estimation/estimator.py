@@ -439,7 +439,11 @@ class Estimator:
         # against: the noise learnt from it would go to its floor. One along a heading not known is wider than the
         # truth too, but the fixes can still show that they are noisier than assumed: the noise may rise, not fall
         # (falling, it took the libRSF robot's 3 cm IPS to 1.7 cm by the first window's re-alignment)
-        verdict = gate.judge(t_meas, inn, r, learn=not self._paused_at(t_meas), lower=self.modes.heading_known)
+        # seeding, and confirming far fixes, with the heading unknown
+        travelled = 0.0 if self.modes.heading_known and self.modes.placed else track.travel_at(t_meas)[0]
+        verdict = gate.judge(
+            t_meas, inn, r, learn=not self._paused_at(t_meas), lower=self.modes.heading_known, travelled=travelled
+        )
         before = self.modes.on_verdict(verdict)
         aligner = self._aligner
         if aligner.enabled and self.modes.placed:

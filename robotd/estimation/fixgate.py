@@ -82,32 +82,50 @@ class FixGate:
         self.r = self.r_floor  # the IPS noise variance in use
         self.rejected: deque[Innovation3] = deque(maxlen=256)
         self.candidates: deque[Innovation3] = deque(maxlen=config.seed_fixes)
+        self._candidates_travel: deque[float] = deque(maxlen=config.seed_fixes)  # the odometry's distance at each
+        self._fused_travel = 0.0  # the odometry's distance at the last fix fused (judge's `travelled`)
         self.innovations: deque[float] = deque(maxlen=31)  # |nu|^2 / ln 4 x r / S, for the noise estimate
         self._ordered: list[float] = []  # the same, sorted
         self._prior = self.r  # the noise in use when the window began: its estimate leans on it until it fills
 
-    def judge(self, t_meas: float, inn: ekf.Innovation, r: float, *, learn: bool = True, lower: bool = True) -> Verdict:
+    def judge(
+        self,
+        t_meas: float,
+        inn: ekf.Innovation,
+        r: float,
+        *,
+        learn: bool = True,
+        lower: bool = True,
+        travelled: float = 0.0,
+    ) -> Verdict:
         """Seed, accept, gate or recover: the fix's verdict (and the counters and noise estimate that follow; the noise
-        learns from the fix only when `learn`, and only upwards unless `lower`)."""
+        learns from the fix only when `learn`, and only upwards unless `lower`). `travelled`: the odometry's distance
+        driven at the fix, which seeding and confirming far fixes with the heading unknown need."""
         config, counters = self.config, self.counters
         if not self.modes.placed and config.seed_fixes:
             self.candidates.append((t_meas, inn.nu_x, inn.nu_y))
-            if len(self.candidates) < config.seed_fixes or not self._agree(list(self.candidates)):
+            self._candidates_travel.append(travelled)
+            if len(self.candidates) < config.seed_fixes or not self._candidates_agree():
                 return Verdict.SEEDING
             counters["fixes_seeded"] += 1
+            self._fused_travel = travelled
             return Verdict.SEEDED
         if learn and config.adaptive_ips_noise and self._samples_noise(inn, r):
             self._learn_noise(inn, r, lower=lower)
         rejection = Verdict.GATED
         if not config.gating or self._inside_gate(inn, r):
-            if not (config.confirm_far_fixes and self._unconfirmed(t_meas, inn, r)):
+            # with the heading unknown the robot may be anywhere within the distance driven since the last fix fused
+            driven = 0.0 if self.modes.heading_known else abs(travelled - self._fused_travel)
+            if not (config.confirm_far_fixes and self._unconfirmed(t_meas, inn, r, driven)):
                 self.rejected.clear()
                 counters["fixes_accepted"] += 1
+                self._fused_travel = travelled
                 return Verdict.ACCEPTED
             rejection = Verdict.UNCONFIRMED
         self.rejected.append((t_meas, inn.nu_x, inn.nu_y))
         if self._recoverable():
             counters["recoveries"] += 1
+            self._fused_travel = travelled
             return Verdict.RECOVERED
         counters["fixes_rejected"] += 1
         return rejection
@@ -120,6 +138,11 @@ class FixGate:
         else:
             recent = list(self.candidates)
             self.candidates.clear()
+            moved = max(self._candidates_travel) > min(self._candidates_travel)
+            self._candidates_travel.clear()
+            if moved and not self.modes.heading_known:
+                # this fix's: the others' motion since is known in length only (_candidates_agree)
+                return recent[-1][1], recent[-1][2]
         dx = sorted(e[1] for e in recent)[len(recent) // 2]
         dy = sorted(e[2] for e in recent)[len(recent) // 2]
         return dx, dy
@@ -150,8 +173,30 @@ class FixGate:
         """Whether fixes (as innovations, odometry motion removed) all lie close to their median."""
         mx = sorted(e[1] for e in innovations)[len(innovations) // 2]
         my = sorted(e[2] for e in innovations)[len(innovations) // 2]
-        tolerance = max(self.config.recovery_agreement_m, 4.0 * math.sqrt(self.r))
+        tolerance = self._agreement()
         return all(math.hypot(e[1] - mx, e[2] - my) <= tolerance for e in innovations)
+
+    def _candidates_agree(self) -> bool:
+        """Whether the seeding candidates agree: as `_agree` with the heading known; with it unknown, each within
+        the agreement of the newest plus twice the distance driven between them.
+
+        An unplaced position moves along the initial heading's guess (robotd.estimation.history.Predictor), so with
+        the heading unknown the innovations have the motion removed in a direction that may be wrong by up to pi:
+        two of them differ by up to twice the distance driven between the fixes. Judged as with the heading known, a
+        robot that drove off at once was never placed while it moved (2 Hz fixes of the libRSF robot: not for its
+        first 12 s, until it stopped). An outlier metres away still fails, unless the robot drove metres between."""
+        if self.modes.heading_known:
+            return self._agree(list(self.candidates))
+        newest, travel = self.candidates[-1], self._candidates_travel[-1]
+        tolerance = self._agreement()
+        return all(
+            math.hypot(e[1] - newest[1], e[2] - newest[2]) <= tolerance + 2.0 * abs(travel - d)
+            for e, d in zip(self.candidates, self._candidates_travel, strict=True)
+        )
+
+    def _agreement(self) -> float:
+        """How far apart fixes of one position may lie: the configured agreement, or four sigmas of the noise."""
+        return max(self.config.recovery_agreement_m, 4.0 * math.sqrt(self.r))
 
     def _inside_gate(self, inn: ekf.Innovation, r: float) -> bool:
         """Whether the fix passes the gate, judged with the noise at least as configured."""
@@ -165,12 +210,18 @@ class FixGate:
             and ekf.mahalanobis2(inn.nu_x, inn.nu_y, inn.s_xx + extra, inn.s_xy, inn.s_yy + extra) <= self.gate
         )
 
-    def _unconfirmed(self, t_meas: float, inn: ekf.Innovation, r: float) -> bool:
-        """Whether a fix inside the gate is beyond it for a prediction as good as a fix (S = 2r, r at least the
-        configured ips_sigma_m^2), and the fix before it (the newest rejected one) does not agree with it."""
+    def _unconfirmed(self, t_meas: float, inn: ekf.Innovation, r: float, driven: float) -> bool:
+        """Whether a fix inside the gate is beyond it, by more than `driven` metres, for a prediction as good as a fix
+        (S = 2r, r at least the configured ips_sigma_m^2), and the fix before it (the newest rejected one) does not
+        agree with it.
+
+        `driven`: how far the robot drove, in a direction not known (the heading unknown), since the last fix fused.
+        Without it, 2 Hz fixes of the libRSF robot driving off at 0.4 m/s were held every other one (each 0.2 m
+        from a position that could not follow the motion) and the error reached 0.4 m."""
         # the configured noise as a floor: a learnt r below the true noise (a conservative P leaves less of the
         # innovations to the fixes) would hold ordinary fixes
-        if inn.nu_x * inn.nu_x + inn.nu_y * inn.nu_y <= 2.0 * max(r, self.config.ips_sigma_m**2) * self.gate:
+        distance = math.hypot(inn.nu_x, inn.nu_y) - driven
+        if distance <= 0.0 or distance * distance <= 2.0 * max(r, self.config.ips_sigma_m**2) * self.gate:
             return False
         return not (self.rejected and self._agree([self.rejected[-1], (t_meas, inn.nu_x, inn.nu_y)]))
 
