@@ -1,7 +1,9 @@
 """The verdict on each IPS fix: seeding, Mahalanobis gating, lock-out recovery, and the IPS noise estimate. Pure.
 
 - Until the position is placed, fixes are held as candidates: `seed_fixes` that agree with each other seed it (a
-  first fix may be an outlier). With none configured (the paper's filter), the first fix is judged like any other.
+  first fix may be an outlier; with the heading unknown, allowing for the distance driven between them, as the
+  odometry's motion cannot be removed in a direction not known). With none configured (the paper's filter), the first
+  fix is judged like any other.
 - Then a fix is accepted when its NIS is within the chi-square gate (2 dof), with the noise at least as configured,
   unless it is there only because the position is uncertain (`confirm_far_fixes`): a fix that would fail the gate were
   the prediction as good as a fix (as configured, or as learnt when noisier) is held (UNCONFIRMED) and fused once the
