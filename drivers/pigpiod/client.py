@@ -16,7 +16,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.pigpiod.protocol import COMMAND, EXTENDED_ANSWERS, Cmd, Err, decode_result, encode_command
+from drivers.pigpiod.protocol import (
+    COMMAND,
+    EXTENDED_ANSWERS,
+    Cmd,
+    Err,
+    decode_result,
+    encode_command,
+    signed_result,
+)
 
 
 class PigpiodUnavailableError(ConnectionError):
@@ -328,8 +336,8 @@ class CommandPipe:
         answers, self._unread = bytes(self._unread[:whole]), self._unread[whole:]
         self._owed -= whole // COMMAND.size
         for cmd, p1, p2, word in COMMAND.iter_unpack(answers):
-            if word & 0x80000000:  # a negative result: pigpiod refused the command
-                raise PigpioCommandError(cmd, p1, p2, word - (1 << 32))
+            if (result := signed_result(word)) < 0:  # pigpiod refused the command
+                raise PigpioCommandError(cmd, p1, p2, result)
 
     def flush(self, timeout_s: float) -> bool:
         """Wait (blocking, at most `timeout_s`) until every command sent has been answered; whether it was. For an

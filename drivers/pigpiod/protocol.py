@@ -210,7 +210,11 @@ def decode_params(extension: bytes) -> tuple[int, ...]:
 
 def decode_result(answer: bytes) -> int:
     """The signed result of a 16-byte answer."""
-    word = int(COMMAND.unpack(answer)[3])
+    return signed_result(int(COMMAND.unpack(answer)[3]))
+
+
+def signed_result(word: int) -> int:
+    """An answer's result field (unsigned 32-bit, as COMMAND unpacks it) as the signed value pigpiod meant."""
     return word - (1 << 32) if word & 0x80000000 else word
 
 
