@@ -113,6 +113,7 @@ class _FixToLearn:
     x: float
     y: float
     timed: bool
+    travel: Travel  # the odometry's at t_meas
 
 
 class StreamPace:
@@ -439,10 +440,9 @@ class Estimator:
         # against: the noise learnt from it would go to its floor. One along a heading not known is wider than the
         # truth too, but the fixes can still show that they are noisier than assumed: the noise may rise, not fall
         # (falling, it took the libRSF robot's 3 cm IPS to 1.7 cm by the first window's re-alignment)
-        # seeding, and confirming far fixes, with the heading unknown
-        travelled = 0.0 if self.modes.heading_known and self.modes.placed else track.travel_at(t_meas)[0]
+        travel = Travel(*track.travel_at(t_meas))  # for the gate with the heading unknown, and the process noise
         verdict = gate.judge(
-            t_meas, inn, r, learn=not self._paused_at(t_meas), lower=self.modes.heading_known, travelled=travelled
+            t_meas, inn, r, learn=not self._paused_at(t_meas), lower=self.modes.heading_known, travelled=travel.distance
         )
         before = self.modes.on_verdict(verdict)
         aligner = self._aligner
@@ -459,7 +459,7 @@ class Estimator:
         history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
-        self._unsettled = _FixToLearn(verdict, t_meas, inn, r, prior, anchor, stated, x, y, timed)
+        self._unsettled = _FixToLearn(verdict, t_meas, inn, r, prior, anchor, stated, x, y, timed, travel)
         return Diagnostics(
             t, t_meas, (inn.nu_x, inn.nu_y), (inn.s_xx, inn.s_xy, inn.s_yy), inn.nis, gate.gate, verdict, math.sqrt(r)
         )
@@ -472,8 +472,7 @@ class Estimator:
         if fix is None:
             return
         if self._process_noise is not None:
-            fused = (fix.prior, fix.anchor)
-            self._learn_process_noise(self._process_noise, fix.verdict, fix.t_meas, fix.inn, fix.r, fused)
+            self._learn_process_noise(self._process_noise, fix)
         if fix.verdict is Verdict.ACCEPTED and self._calibrator is not None:
             self._calibrate(fix.stated, fix.x, fix.y, timed=fix.timed)
         aligner, track = self._aligner, self._track
@@ -484,19 +483,10 @@ class Estimator:
         # an output taken before this (the fix's own pose) carried the state with the noise and scales then in use
         self._newest = None
 
-    def _learn_process_noise(  # noqa: PLR0917 - the fix as on_fix has it
-        self,
-        scale: ProcessNoiseScale,
-        verdict: Verdict,
-        t_meas: float,
-        inn: ekf.Innovation,
-        r: float,
-        fused: tuple[State, Anchor],
-    ) -> None:
-        """Give an accepted fix's innovation (of fix noise variance r), with the state before it and the anchor it
-        left (`fused`), to the process noise scales (any other verdict restarts their shadows); use the scales when
-        they moved."""
-        if verdict is not Verdict.ACCEPTED:
+    def _learn_process_noise(self, scale: ProcessNoiseScale, fix: _FixToLearn) -> None:
+        """Give an accepted fix's innovation, with the state before it and the anchor it left, to the process noise
+        scales (any other verdict restarts their shadows); use the scales when they moved."""
+        if fix.verdict is not Verdict.ACCEPTED:
             scale.forget()
             return
         calibration = self._calibration
@@ -509,11 +499,10 @@ class Estimator:
             self._use_noise_scales(scale)
         independent = self._fixes_judged and calibration.fix_correlation == 0.0
         learn = independent and self.modes.heading_known
-        (px, py, pth, pp, _), anchor = fused
+        (px, py, pth, pp, _), anchor = fix.prior, fix.anchor
         prior, posterior = Pose(px, py, pth, pp), Pose(anchor.x, anchor.y, anchor.theta, anchor.p)
-        travel = Travel(*self._track.travel_at(t_meas))
-        freeze = self._heading_frozen(t_meas)
-        if scale.on_fix(t_meas, inn, r, prior, posterior, travel, learn=learn, freeze_heading=freeze):
+        freeze = self._heading_frozen(fix.t_meas)
+        if scale.on_fix(fix.t_meas, fix.inn, fix.r, prior, posterior, fix.travel, learn=learn, freeze_heading=freeze):
             self._use_noise_scales(scale)
 
     def _use_noise_scales(self, scale: ProcessNoiseScale) -> None:

@@ -621,3 +621,17 @@ def test_a_robot_that_drives_off_at_once_with_the_heading_unknown_is_placed_whil
     # with the heading still unknown, each fix lies the distance driven since the last one from the position held:
     # fused, not held back as far from a prediction as good as a fix (every other one was)
     assert est.counters["fixes_accepted"] == est.counters["fixes"] - 3
+
+
+def test_after_the_heading_is_lost_a_far_fix_is_held_by_the_distance_since_the_last_fix_not_since_the_start() -> None:
+    est = Estimator(_config(initial_sigma=(0.05, 0.05, 0.05)), GEOMETRY, (0.0, 0.0), CPR)  # the heading known
+    true = _drive(est, 20.0, (0.3, 0.0, 0.0))  # 6 m driven, fixes at 8 Hz
+    est.on_twist(22.0, 0.0, 0.0, 0.0)  # two seconds without odometry, now at rest: the heading is unknown again
+    assert not est.modes.heading_known
+    # the position, after two seconds of a guessed motion (0.6 m, the twist held), is wide: a fix 1.5 m off lies
+    # inside the gate. Beyond the distance driven since the last fix fused, it is held for the next fix to confirm
+    # (allowing the 6 m driven since the start, as when the distance at the last fix was not kept, fused it at once)
+    x, y, _ = true
+    record = est.on_fix(22.0, x + 1.5, y, 22.0)
+    assert record is not None
+    assert record.verdict is Verdict.UNCONFIRMED
