@@ -734,7 +734,7 @@ class Estimator:
         """The state at the newest step, or at the newest anchor when that is later (between two fixes the outputs
         carry the previous output's state on, step by step)."""
         history, track = self._history, self._track
-        anchor, newest = history.newest, len(track) - 1
+        anchor, newest = history.anchors[-1], len(track.t) - 1
         cached = self._newest
         if cached is not None and cached[0] is anchor and cached[1] <= newest:
             if cached[1] < newest:
@@ -780,19 +780,22 @@ class Estimator:
         averages away an error they share; the estimate cannot be surer than that, and while the heading is unknown
         the lever arm's (_fused_offset): every fix shares it.
         """
-        newest_step = self._track.t[-1] if self._track.t else -math.inf
-        when = max(newest_step, self._history.newest.t)
-        x, y, th, p, sens = self._state_at_newest_step()
+        # the replay's per-sample path (position): attributes read once, no property or helper not needed
+        steps_t, history = self._track.t, self._history
+        newest_step = steps_t[-1] if steps_t else -math.inf
+        anchor_t = history.anchors[-1].t
+        when = max(newest_step, anchor_t)
+        state = self._state_at_newest_step()
         if t is None:
             t = max(when, self._wheels.last_t)
         if t > when and math.isfinite(when):
             # the same process model as a step: the covariance grows with the motion the extrapolation assumes
-            state = (x, y, th, p, sens)
-            if self._track.t:
-                x, y, th, p, _ = self._history.beyond_newest(state, when, t, self._pending())
+            if steps_t:
+                state = history.beyond_newest(state, when, t, self._pending())
             else:
-                x, y, th, p, _ = self._history.move_within(state, when, t, self._pending)
+                state = history.move_within(state, when, t, self._pending)
             when = t
+        x, y, th, p, _ = state
         tau = self.time_sigma_s if self._twist_pace.interval_s > 0.0 else 0.0  # per output: wheel counts skip the call
         if tau > 0.0:  # an error tau in the estimate's time is an error u * tau in its pose, along the motion
             u = self._twist_in_force()
@@ -802,7 +805,8 @@ class Estimator:
             xx, xy, xt, yy, yt, tt = p
             p = (xx + ux * ux, xy + ux * uy, xt + ux * uw, yy + uy * uy, yt + uy * uw, tt + uw * uw)
         shared = self._calibration.fix_correlated_var
-        shared += self._lever_arm_var()
+        if not self.modes.heading_known:
+            shared += self._lever_arm_var()
         if shared > 0.0:
             p = (p[0] + shared, p[1], p[2], p[3] + shared, p[4], p[5])
         return when, x, y, th, p

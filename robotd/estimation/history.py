@@ -187,7 +187,10 @@ class History:
 
     def rescale_sensitivity(self, old: Twist3, new: Twist3) -> None:
         """Every anchor's sensitivity to the odometry scales made fit for their relative variances changed from `old`
-        to `new` (ekf.sensitivity_for_scale_var): the states carried from them keep a positive definite P."""
+        to `new` (ekf.sensitivity_for_scale_var): the states carried from them keep a positive definite P. Nothing
+        changes when no variance grew (most windows: each one's fit narrows them)."""
+        if all(n <= o for o, n in zip(old, new, strict=True)):
+            return
         self.anchors = [
             a if a.sens is ekf.NO_SENS else a._replace(sens=ekf.sensitivity_for_scale_var(a.sens, old, new))
             for a in self.anchors
@@ -252,8 +255,9 @@ class History:
 
     def beyond_newest(self, state: State, at: float, t: float, u: Twist3) -> State:
         """The state at `at` (at or past the newest step) moved on to t with the twist u held since that step."""
-        moved = self.predictor.move(state, u, t - at)
-        if self.stale(t, u):
+        predictor = self.predictor
+        moved = predictor.move(state, u, t - at)
+        if t - self.track.t[-1] > predictor.stale_after_s and u != (0.0, 0.0, 0.0):  # stale(t, u), the hot path
             # past the stream's next sample, the held twist is a guess that ages: add what its age adds since `at`
             stale_after, newest = self.predictor.stale_after_s, self.track.t[-1]
             age0, age1 = max(at - newest - stale_after, 0.0), t - newest - stale_after

@@ -100,21 +100,32 @@ class IllegalTransitionError(RuntimeError):
 class Modes:
     """The estimator's position and heading modes, changed only through the tables above."""
 
-    __slots__ = ("heading", "position")
+    # placed and heading_known are read at every odometry sample: kept as attributes, set with the modes they follow
+    __slots__ = ("_heading", "_position", "heading_known", "placed")
 
     def __init__(self, *, heading_known: bool) -> None:
         self.position = PositionMode.INITIALISING
         self.heading = HeadingMode.ALIGNED if heading_known else HeadingMode.UNKNOWN
 
     @property
-    def placed(self) -> bool:
-        """Whether a fix has placed the position."""
-        return self.position is not PositionMode.INITIALISING
+    def position(self) -> PositionMode:
+        """The position mode."""
+        return self._position
+
+    @position.setter
+    def position(self, mode: PositionMode) -> None:
+        self._position = mode
+        self.placed: bool = mode is not PositionMode.INITIALISING  # whether a fix has placed the position
 
     @property
-    def heading_known(self) -> bool:
-        """Whether the heading is known (in any mode but UNKNOWN)."""
-        return self.heading is not HeadingMode.UNKNOWN
+    def heading(self) -> HeadingMode:
+        """The heading mode."""
+        return self._heading
+
+    @heading.setter
+    def heading(self, mode: HeadingMode) -> None:
+        self._heading = mode
+        self.heading_known: bool = mode is not HeadingMode.UNKNOWN  # in any mode but UNKNOWN
 
     def on_verdict(self, verdict: Verdict) -> PositionMode:
         """Take a fix's verdict; returns the previous position mode. A recovery makes the heading unknown."""

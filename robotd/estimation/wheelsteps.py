@@ -21,15 +21,24 @@ class TickKinematics:
     def __init__(self, geometry: kinematics.Geometry, counts_per_rev: int) -> None:
         self.geometry = geometry
         self.radians_per_count = 2.0 * math.pi / counts_per_rev
+        # eq. 1 is linear: its twist per count of each wheel, taken from kinematics.forward once (the per-sample path
+        # then costs a few multiplications, not a Twist per call)
+        c = self.radians_per_count
+        one_count = ((c, 0.0, 0.0, 0.0), (0.0, c, 0.0, 0.0), (0.0, 0.0, c, 0.0), (0.0, 0.0, 0.0, c))
+        per_count = [kinematics.forward(geometry, turn) for turn in one_count]
+        self._vx = tuple(t.vx for t in per_count)
+        self._vy = tuple(t.vy for t in per_count)
+        self._wz = tuple(t.wz for t in per_count)
 
     def twist(self, start: Ticks, end: Ticks, dt: float) -> tuple[float, float, float]:
         """The mean twist of the ticks from `start` to `end` over dt > 0 seconds."""
-        k = self.radians_per_count / dt
-        twist = kinematics.forward(
-            self.geometry,
-            ((end[0] - start[0]) * k, (end[1] - start[1]) * k, (end[2] - start[2]) * k, (end[3] - start[3]) * k),
+        d0, d1, d2, d3 = end[0] - start[0], end[1] - start[1], end[2] - start[2], end[3] - start[3]
+        vx, vy, wz = self._vx, self._vy, self._wz
+        return (
+            (vx[0] * d0 + vx[1] * d1 + vx[2] * d2 + vx[3] * d3) / dt,
+            (vy[0] * d0 + vy[1] * d1 + vy[2] * d2 + vy[3] * d3) / dt,
+            (wz[0] * d0 + wz[1] * d1 + wz[2] * d2 + wz[3] * d3) / dt,
         )
-        return twist.vx, twist.vy, twist.wz
 
 
 class WheelFeed:
