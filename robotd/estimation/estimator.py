@@ -70,6 +70,9 @@ STAMP_CONVENTION_VAR = 1.0 / 6.0
 STREAM_PAUSE_PERIODS = 3.0
 PAUSE_MIN_S = 0.25
 TRIM_STEPS = 256  # the track is trimmed in batches: a few hundred steps are cheaper to keep than to cut often
+# and the anchors too when the track does not grow: odometry that is silent (a robot at rest whose stream publishes
+# only changes, an unplugged encoder) while fixes keep coming would otherwise keep every fix's anchor for ever
+TRIM_ANCHORS = 512
 
 
 @dataclass(frozen=True, slots=True)
@@ -370,10 +373,14 @@ class Estimator:
         else:
             track.hold(held)
         if len(track) - TRIM_STEPS > 2 * TRIM_STEPS:
-            needed = history.trim(t, self._pending)
-            if needed > TRIM_STEPS:
-                track.drop_before(needed)
-                self._newest = None  # its step index moved
+            self._trim(t)
+
+    def _trim(self, now: float) -> None:
+        """Forget the anchors and steps older than the history keeps (history_s before `now`)."""
+        needed = self._history.trim(now, self._pending)
+        if needed > TRIM_STEPS:
+            self._track.drop_before(needed)
+            self._newest = None  # its step index moved
 
     def _pending(self) -> Twist3:
         """The twist beyond the newest step: that of the samples fed since (their mean), or the one in force."""
@@ -457,6 +464,8 @@ class Estimator:
         else:
             anchor = Anchor(t_meas, px, py, pth, pp, FixRecord(x, y, r, fused=False), psens)
         history.place(k, anchor, self._remake, self._pending)  # every later anchor again, from the corrected state
+        if len(history.times) > TRIM_ANCHORS:
+            self._trim(t_meas)
         if verdict is Verdict.ACCEPTED or verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:
             self._last_accept_t = max(self._last_accept_t, t_meas)
         self._unsettled = _FixToLearn(verdict, t_meas, inn, r, prior, anchor, stated, x, y, timed, travel)

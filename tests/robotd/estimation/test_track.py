@@ -182,6 +182,34 @@ def test_a_long_outage_keeps_the_daemons_history_short_and_the_estimate_unchange
     assert all(math.isclose(u, v, rel_tol=1e-9, abs_tol=1e-15) for u, v in zip(a.cov, b.cov, strict=True))
 
 
+def _silent_odometry_run() -> tuple[Estimator, int]:
+    """One wheel sample, then 20 minutes of fixes at 16 Hz with the odometry silent (a robot at rest whose stream
+    publishes only changes, an unplugged encoder); the most anchors held."""
+    rng = random.Random(5)
+    est = Estimator(EkfConfig(), GEOMETRY, (0.0, 0.0), CPR)
+    est.on_wheels(0.0, (0, 0, 0, 0))
+    most = 0
+    for i in range(16 * 1200):
+        t = (i + 1) / 16
+        est.on_fix(t, 1.0 + rng.gauss(0, 0.02), 2.0 + rng.gauss(0, 0.02), t - 0.05)
+        most = max(most, len(est._history.anchors))
+    return est, most
+
+
+def test_silent_odometry_keeps_the_anchors_few_and_the_estimate_unchanged(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The track never grows, so its trimming never ran: every fix's anchor was kept (about 1 MB a minute)."""
+    daemon, most = _silent_odometry_run()
+    monkeypatch.setattr(estimator, "TRIM_ANCHORS", 10**9)
+    untrimmed, held = _silent_odometry_run()
+    assert most <= estimator.TRIM_ANCHORS + 1
+    assert held > 16 * 1100
+    a, b = daemon.pose(), untrimmed.pose()
+    assert (a.x, a.y) == pytest.approx((1.0, 2.0), abs=0.01)
+    assert math.isclose(a.x, b.x, abs_tol=1e-12)
+    assert math.isclose(a.y, b.y, abs_tol=1e-12)
+    assert all(math.isclose(u, v, rel_tol=1e-9, abs_tol=1e-15) for u, v in zip(a.cov, b.cov, strict=True))
+
+
 def _gate(config: EkfConfig) -> FixGate:
     return FixGate(
         config,
