@@ -117,14 +117,19 @@ class ProcessNoiseScale:
         )
         self._log_scales: FloatArray = np.stack([grid_position.ravel(), grid_heading.ravel()])  # (position, heading)
         self._log_fix_factor: FloatArray = grid_fix.ravel()
-        # each shadow's multipliers of the noise added between two fixes: its scales, and 1 for robotd's growth
-        # through the scales' uncertainty and the rest (on_fix)
-        self._growth_factors: FloatArray = np.vstack([np.exp(self._log_scales), np.ones(self._log_scales.shape[1])])
+        # per shadow, rows 0-5: its covariance after the last fix (P's upper triangle); rows 6-8: its multipliers of
+        # the noise added between two fixes (its scales, and 1 for robotd's growth through the scales' uncertainty and
+        # the rest). One product of the carry (below) with it takes every shadow to the next fix
+        self._shadows = np.empty((9, len(self._log_fix_factor)))
+        self._shadows[6:8] = np.exp(self._log_scales)
+        self._shadows[8] = 1.0
         self._fix_factor: FloatArray = np.exp(self._log_fix_factor)
-        # the small matrices of each fix, filled in place: making them anew cost more than the bank's own arithmetic
-        self._motion = np.eye(6)  # P -> F P F^T on the upper triangle
+        # the small matrices of each fix, filled in place: making them anew cost more than the bank's own arithmetic.
+        # The carry's rows 0-5 map a shadow's column to its predicted P, [P -> F P F^T | growth per unit of each
+        # factor]; rows 6-14 to U = P H^T and S - R of that P (_to_u_s times rows 0-5): one product, not four
+        self._carry = np.zeros((15, 9))
+        self._carry[:6, :6] = np.eye(6)
         self._turning = np.eye(3)  # F on the offsets
-        self._growth = np.zeros((6, 3))  # per unit of each growth factor
         self._to_u_s = _to_u_s()  # P -> (U = P H^T, S - R)
         self.learnt = 0  # fixes learnt from
         self._start_bank(self.value, self.heading_value)
@@ -191,15 +196,16 @@ class ProcessNoiseScale:
             self._last = (t, posterior, travel)
             return False
         _, before, travel_before = last
-        cov = self._cov
-        if cov is None:  # every shadow as robotd's filter was after the last fix
-            cov = np.repeat(np.asarray(before.p, dtype=np.float64)[:, None], len(self._log_fix_factor), axis=1)
+        shadows = self._shadows
+        if self._cov is None:  # every shadow as robotd's filter was after the last fix
+            shadows[:6] = np.asarray(before.p, dtype=np.float64)[:, None]
             self._offset = np.zeros((3, len(self._log_fix_factor)))
         driven = travel.distance - travel_before.distance
         # the displacement since the last fix: a heading error there turns it (the motion's Jacobian in theta)
         dx, dy = prior.x - before.x, prior.y - before.y
-        motion, turning, growth = self._motion, self._turning, self._growth
-        _set_motion(motion, dx, dy)
+        carry, turning = self._carry, self._turning
+        motion_growth = carry[:6]
+        _set_motion(motion_growth, dx, dy)
         turning[0, 2], turning[1, 2] = -dy, dx
         turned = abs(travel.turned - travel_before.turned)
         noise = self.noise
@@ -207,21 +213,32 @@ class ProcessNoiseScale:
         heading_q = noise.heading_var_per_m * driven + noise.heading_var_per_rad * turned
         # per unit of each scale: the position's on x and y; the heading's, added evenly over the displacement, on the
         # heading and, through the displacement still to come (a third of it on average), on the position
-        heading_growth = (dy * dy / 3.0, -dx * dy / 3.0, -dy / 2.0, dx * dx / 3.0, dx / 2.0, 1.0)
-        growth[0, 0] = growth[3, 0] = position_q
-        growth[:, 1] = heading_growth
-        growth[:, 1] *= heading_q
-        # robotd's growth through the scales' uncertainty and the rest: its own, less its odometry noise at the scales
-        # in use; every shadow grows by it, and by its own scales' odometry noise
-        rest = np.asarray(prior.p) - motion @ np.asarray(before.p)
-        rest -= growth[:, :2] @ np.array([self.value, self.heading_value])
-        growth[:, 2] = _covariance(rest.tolist())
-        predicted = motion @ cov
-        predicted += growth @ self._growth_factors
+        spread = (dy * dy / 3.0, -dx * dy / 3.0, -dy / 2.0, dx * dx / 3.0, dx / 2.0, 1.0)
+        heading_growth = [g * heading_q for g in spread]
+        motion_growth[0, 6] = motion_growth[3, 6] = position_q
+        motion_growth[:, 7] = heading_growth
+        # robotd's growth through the scales' uncertainty and the rest: its own (prior.p less F before.p F^T), less
+        # its odometry noise at the scales in use; every shadow grows by it, and by its own scales' odometry noise
+        bxx, bxy, bxt, byy, byt, btt = before.p
+        a, b = -dy, dx
+        moved = (
+            bxx + 2.0 * a * bxt + a * a * btt + position_q * self.value,
+            bxy + b * bxt + a * byt + a * b * btt,
+            bxt + a * btt,
+            byy + 2.0 * b * byt + b * b * btt + position_q * self.value,
+            byt + b * btt,
+            btt,
+        )
+        heading_scale = self.heading_value
+        rest = [p - m - g * heading_scale for p, m, g in zip(prior.p, moved, heading_growth, strict=True)]
+        motion_growth[:, 8] = _covariance(rest)
+        _with_lever_arm(self._to_u_s, inn.h02, inn.h12)
+        np.matmul(self._to_u_s, motion_growth, out=carry[6:])
+        carried = carry @ shadows
         offset = turning @ self._offset
         changed = False
         fix_var = self._fix_var
-        update = _Update(predicted, offset, inn, fix_var, self._to_u_s, freeze_heading=freeze_heading)
+        update = _Update(carried, offset, inn, fix_var, freeze_heading=freeze_heading)
         if learn:
             self._as_reset = False
             log_likelihood = self._log_likelihood
@@ -242,7 +259,7 @@ class ProcessNoiseScale:
         offset[1] -= posterior.y - prior.y
         offset[2] -= ekf.wrap_angle(posterior.theta - prior.theta)
         self._offset = offset
-        self._cov = update.covariance()
+        self._cov = update.covariance(out=shadows[:6])
         self._last = (t, posterior, travel)
         return changed
 
@@ -279,7 +296,7 @@ def _covariance(p: list[float]) -> tuple[float, float, float, float, float, floa
 def _to_u_s() -> FloatArray:
     """The map from P (upper triangle) to U = P H^T (its column for the fix's x over x, y, heading, then for its y)
     and S - R = H U (s00, s01, s11), for H = [[1, 0, h02], [0, 1, h12]]: the lever arm's entries are set per fix
-    (_Update)."""
+    (_with_lever_arm)."""
     m = np.zeros((9, 6))
     m[0, 0] = m[1, 1] = m[2, 2] = 1.0  # u0 = (xx, xy, xt) + h02 (xt, yt, tt)
     m[3, 1] = m[4, 3] = m[5, 4] = 1.0  # u1 = (xy, yy, yt) + h12 (xt, yt, tt)
@@ -287,65 +304,69 @@ def _to_u_s() -> FloatArray:
     return m
 
 
-# the upper triangle's (row, column) in the pose (x, y, heading): P+ = P - K U^T entry by entry
-_ROWS = np.array([0, 0, 0, 1, 1, 2])
-_COLUMNS = np.array([0, 1, 2, 1, 2, 2])
+# P+ = P - K U^T on the upper triangle, entry (i, j) of the pose (x, y, heading): K's row i times U's row j, summed over
+# the two measured axes (K and U stacked: the x column's rows 0-2, the y column's 3-5)
+_ROWS = [0, 0, 0, 1, 1, 2]
+_COLUMNS = [0, 1, 2, 1, 2, 2]
+_GAIN_ROWS = np.array(_ROWS + [r + 3 for r in _ROWS])
+_U_ROWS = np.array(_COLUMNS + [c + 3 for c in _COLUMNS])
+
+
+def _with_lever_arm(to_u_s: FloatArray, h02: float, h12: float) -> None:
+    """Set the lever arm's entries of _to_u_s's map (zero without one) for a fix whose H is [[1, 0, h02], [0, 1,
+    h12]]."""
+    to_u_s[0, 2] = to_u_s[1, 4] = to_u_s[2, 5] = h02
+    to_u_s[3, 2] = to_u_s[4, 4] = to_u_s[5, 5] = h12
+    to_u_s[6, 2], to_u_s[6, 5] = 2.0 * h02, h02 * h02
+    to_u_s[7, 2], to_u_s[7, 4], to_u_s[7, 5] = h12, h02, h02 * h12
+    to_u_s[8, 4], to_u_s[8, 5] = 2.0 * h12, h12 * h12
 
 
 class _Update:
     """Every shadow's Kalman update at one fix: innovation, its covariance S = H P H^T + R, gain K = U S^-1 with
-    U = P H^T, its heading row zero when the heading is frozen. Arrays are (rows, shadows)."""
+    U = P H^T, its heading row zero when the heading is frozen. Arrays are (rows, shadows); `carried` holds each
+    shadow's predicted P (rows 0-5), U's two columns (6-8, 9-11) and S - R (12-14)."""
 
     def __init__(
-        self,
-        p: FloatArray,
-        offset: FloatArray,
-        inn: ekf.Innovation,
-        fix_var: FloatArray,
-        to_u_s: FloatArray,
-        *,
-        freeze_heading: bool,
+        self, carried: FloatArray, offset: FloatArray, inn: ekf.Innovation, fix_var: FloatArray, *, freeze_heading: bool
     ) -> None:
-        self.p = p
-        h02, h12 = inn.h02, inn.h12
-        # the lever arm's terms in U and S (zero without one)
-        to_u_s[0, 2] = to_u_s[1, 4] = to_u_s[2, 5] = h02
-        to_u_s[3, 2] = to_u_s[4, 4] = to_u_s[5, 5] = h12
-        to_u_s[6, 2], to_u_s[6, 5] = 2.0 * h02, h02 * h02
-        to_u_s[7, 2], to_u_s[7, 4], to_u_s[7, 5] = h12, h02, h02 * h12
-        to_u_s[8, 4], to_u_s[8, 5] = 2.0 * h12, h12 * h12
-        u_s = to_u_s @ p
-        self.u0, self.u1, s = u_s[:3], u_s[3:6], u_s[6:]
+        self.p = carried[:6]
+        self.u = carried[6:12]  # U's column for the fix's x over (x, y, heading), then for its y
+        u0, u1 = carried[6:9], carried[9:12]
+        s = carried[12:15]  # S - R, made S in place (the carried rows are this fix's own)
         s[0] += fix_var
         s[2] += fix_var
-        self.s = s
         self.det: FloatArray = s[0] * s[2] - s[1] * s[1]
+        # S^-1 = [[s11, -s01], [-s01, s00]] / det
+        self.inverse = s / self.det
+        inverse = self.inverse
         # each shadow's innovation: robotd's less its offset as the fix sees it
+        h02, h12 = inn.h02, inn.h12
         nu_x: FloatArray = inn.nu_x - offset[0]
         nu_y: FloatArray = inn.nu_y - offset[1]
         if h02 or h12:
             nu_x -= h02 * offset[2]
             nu_y -= h12 * offset[2]
         self.nu_x, self.nu_y = nu_x, nu_y
-        # K = U S^-1, S^-1 = [[s11, -s01], [-s01, s00]] / det: one column per measured axis
-        s00, s01, s11 = s / self.det
-        k0 = self.u0 * s11
-        k0 -= self.u1 * s01
-        k1 = self.u1 * s00
-        k1 -= self.u0 * s01
+        # K = U S^-1, one column per measured axis, stacked: rows 0-2 the x column's, 3-5 the y column's
+        i00, i01, i11 = inverse
+        k = np.empty((6, len(fix_var)))
+        np.multiply(u0, i11, out=k[:3])
+        k[:3] -= u1 * i01
+        np.multiply(u1, i00, out=k[3:])
+        k[3:] -= u0 * i01
         if freeze_heading:
-            k0[2] = 0.0
-            k1[2] = 0.0
-        self.k0, self.k1 = k0, k1
+            k[2] = 0.0
+            k[5] = 0.0
+        self.k = k
 
     def log_density(self) -> FloatArray:
         """-log of each shadow's likelihood of its innovation (2 dof, constants dropped; the NIS capped)."""
-        s00, s01, s11 = self.s
+        i00, i01, i11 = self.inverse
         nu_x, nu_y = self.nu_x, self.nu_y
-        nis: FloatArray = nu_x * nu_x * s11
-        nis -= 2.0 * nu_x * nu_y * s01
-        nis += nu_y * nu_y * s00
-        nis /= self.det
+        nis: FloatArray = nu_x * nu_x * i11
+        nis -= 2.0 * nu_x * nu_y * i01
+        nis += nu_y * nu_y * i00
         np.minimum(nis, NIS_CAP, out=nis)
         nis += np.log(self.det)
         nis *= 0.5
@@ -353,16 +374,18 @@ class _Update:
 
     def correction(self) -> FloatArray:
         """Each shadow's state correction K nu (3 x shadows)."""
-        correction: FloatArray = self.k0 * self.nu_x
-        correction += self.k1 * self.nu_y
+        correction: FloatArray = self.k[:3] * self.nu_x
+        correction += self.k[3:] * self.nu_y
         return correction
 
-    def covariance(self) -> FloatArray:
-        """Each shadow's covariance after the fix: P - K U^T, which is also the Joseph form's for a frozen heading's
-        gain (its position rows optimal, its heading row zero)."""
-        p: FloatArray = self.p - self.k0[_ROWS] * self.u0[_COLUMNS]
-        p -= self.k1[_ROWS] * self.u1[_COLUMNS]
-        return p
+    def covariance(self, out: FloatArray) -> FloatArray:
+        """Each shadow's covariance after the fix, written to `out` (6 x shadows): P - K U^T, which is also the Joseph
+        form's for a frozen heading's gain (its position rows optimal, its heading row zero)."""
+        products = np.take(self.k, _GAIN_ROWS, axis=0)
+        products *= np.take(self.u, _U_ROWS, axis=0)
+        np.subtract(self.p, products[:6], out=out)
+        out -= products[6:]
+        return out
 
 
 __all__ = ["OdometryNoise", "Pose", "ProcessNoiseScale", "Travel"]
