@@ -455,7 +455,10 @@ class Estimator:
         aligner = self._aligner
         if aligner.enabled and self.modes.placed:
             if before is PositionMode.INITIALISING:
-                self._restart_window()  # the first window starts with the fix that placed the position
+                # the first window starts with the fix that placed the position: at its measurement time, which is
+                # before the newest step (a window begun there left the fix out, and a 2 Hz beacon's robot drove half
+                # a second more without a heading)
+                self._restart_window(t_meas)
             aligner.record(x, y, t_meas, track.pose_at(t_meas))
         if verdict is Verdict.ACCEPTED:
             anchor = self._fuse(prior, t_meas, (x, y, r), inn)
@@ -681,9 +684,16 @@ class Estimator:
 
     # --- heading alignment --------------------------------------------------------------------------
 
-    def _restart_window(self) -> None:
-        t, pose, dist = self._track.newest(self._history.start)
-        self._aligner.restart(t, pose, dist)
+    def _restart_window(self, at: float | None = None) -> None:
+        """Start a new heading window at the newest step, or at time `at` on the track when given (a fix's
+        measurement time: the fix is then the window's first)."""
+        track = self._track
+        pose = None if at is None else track.pose_at(at)
+        if at is not None and pose is not None:
+            self._aligner.restart(at, pose, track.travel_at(at)[0])
+            return
+        t, newest, dist = track.newest(self._history.start)
+        self._aligner.restart(t, newest, dist)
 
     def _maybe_realign(self) -> None:
         """Take the heading of the aligner's rotation fit when the heading modes say so (robotd.estimation.modes)."""

@@ -623,6 +623,29 @@ def test_a_robot_that_drives_off_at_once_with_the_heading_unknown_is_placed_whil
     assert est.counters["fixes_accepted"] == est.counters["fixes"] - 3
 
 
+def test_the_fix_that_places_the_position_begins_the_heading_window_though_it_was_measured_before_the_newest_step() -> (
+    None
+):
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)  # the heading unknown
+    verdicts: list[Verdict] = []
+    t, x = 0.0, 0.0
+    while len(verdicts) < 6:  # driving along +x at 0.4 m/s; 2 Hz fixes measured 0.1 s before they arrive
+        t += 0.01
+        x += 0.004
+        est.on_twist(t, 0.4, 0.0, 0.0)
+        if round(t * 100) % 50 == 0:
+            record = est.on_fix(t, x - 0.04, 0.0, t - 0.1)
+            est.settle()
+            if record is not None and (verdicts or record.verdict is Verdict.SEEDED):
+                verdicts.append(record.verdict)
+            if verdicts == [Verdict.SEEDED]:
+                assert len(est._aligner.zxs) == 1  # the window began at the newest step, after the fix: 0
+            if len(verdicts) == 3:  # the placing fix and two more: a provisional heading, a fix sooner than before
+                assert est._predictor.provisional[0] > 0.9
+                assert abs(est._predictor.provisional[1]) < 0.2  # the guess (0) was right: no turn
+    assert verdicts[1:] == [Verdict.ACCEPTED] * 5
+
+
 def test_after_the_heading_is_lost_a_far_fix_is_held_by_the_distance_since_the_last_fix_not_since_the_start() -> None:
     est = Estimator(_config(initial_sigma=(0.05, 0.05, 0.05)), GEOMETRY, (0.0, 0.0), CPR)  # the heading known
     true = _drive(est, 20.0, (0.3, 0.0, 0.0))  # 6 m driven, fixes at 8 Hz
