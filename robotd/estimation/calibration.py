@@ -56,6 +56,10 @@ LATENCY_WALK = 0.005**2 / 60.0  # s^2 per second: a delay drifts about 5 ms a mi
 INTERIM_SHARE = 0.1
 MAX_WINDOW_S = 60.0  # a window that has not travelled its length by then starts again (bounded memory)
 TRIM_SIGMAS = 4.0
+# Gauss-Newton stops after a step this small in every parameter of c: each step was about 1/50 of the one before on
+# the virtual robot's windows, so what is left is some 2e-5, a hundredth of the smallest sigma a window reaches (a
+# tenth of a percent of a scale, 5 ms of a delay); 1e-5 cost a fourth fit of the path in most windows
+STEP_TOLERANCE = 1e-3
 PLACEMENT_DOF = 2.0  # per axis: the window's placement (tx, ty, phi, psi) fitted to the fixes absorbs that much error
 # A configured robot's three scales share one error, the wheel radius's (it scales every wheel speed, so vx, vy and wz
 # alike), besides each one's own (rollers for vy, the track and slip for wz): the prior's share of the shared one in
@@ -303,7 +307,7 @@ class Calibrator:
             nuisance = nuisance + step[:N_NUISANCE]
             cal = cal + step[N_NUISANCE:]
             info = a
-            if float(np.max(np.abs(step[N_NUISANCE:]))) < 1e-5:
+            if float(np.max(np.abs(step[N_NUISANCE:]))) < STEP_TOLERANCE:
                 break
         if not np.all(np.isfinite(cal)):
             return None

@@ -335,9 +335,23 @@ def sensitivity_for_scale_var(sens: Sens, old: tuple[float, float, float], new: 
     a spin of 0.35 rad turned the heading's variance negative). The pose's error owed to the scales so far is kept;
     from now on it grows with the larger variance. A variance that shrank leaves the column as it is (less is taken
     out of P than it holds)."""
-    factors = [math.sqrt(o / n) if n > o else 1.0 for o, n in zip(old, new, strict=True)]
-    if factors == [1.0, 1.0, 1.0]:
-        return sens
+    factors = sensitivity_factors(old, new)
+    return sens if factors is None else shrink_sensitivity(sens, factors)
+
+
+def sensitivity_factors(
+    old: tuple[float, float, float], new: tuple[float, float, float]
+) -> tuple[float, float, float] | None:
+    """Each column's factor of sensitivity_for_scale_var, sqrt(old / new) where the variance grew, else 1; None when
+    none grew."""
+    if all(n <= o for o, n in zip(old, new, strict=True)):
+        return None
+    f0, f1, f2 = (math.sqrt(o / n) if n > o else 1.0 for o, n in zip(old, new, strict=True))
+    return f0, f1, f2
+
+
+def shrink_sensitivity(sens: Sens, factors: tuple[float, float, float]) -> Sens:
+    """The sensitivity with its column k multiplied by factors[k]."""
     f0, f1, f2 = factors
     jx0, jx1, jx2, jy0, jy1, jy2, jt0, jt1, jt2 = sens
     return (jx0 * f0, jx1 * f1, jx2 * f2, jy0 * f0, jy1 * f1, jy2 * f2, jt0 * f0, jt1 * f1, jt2 * f2)
@@ -368,7 +382,9 @@ __all__ = [
     "mahalanobis2",
     "predict",
     "predict_considering",
+    "sensitivity_factors",
     "sensitivity_for_scale_var",
+    "shrink_sensitivity",
     "update",
     "wrap_angle",
 ]
