@@ -221,16 +221,17 @@ class ProcessNoiseScale:
         # its odometry noise at the scales in use; every shadow grows by it, and by its own scales' odometry noise
         bxx, bxy, bxt, byy, byt, btt = before.p
         a, b = -dy, dx
-        moved = (
-            bxx + 2.0 * a * bxt + a * a * btt + position_q * self.value,
+        own = position_q * self.value  # F before.p F^T (_set_motion's map) and the position noise at the scale in use
+        explained = (
+            bxx + 2.0 * a * bxt + a * a * btt + own,
             bxy + b * bxt + a * byt + a * b * btt,
             bxt + a * btt,
-            byy + 2.0 * b * byt + b * b * btt + position_q * self.value,
+            byy + 2.0 * b * byt + b * b * btt + own,
             byt + b * btt,
             btt,
         )
         heading_scale = self.heading_value
-        rest = [p - m - g * heading_scale for p, m, g in zip(prior.p, moved, heading_growth, strict=True)]
+        rest = [p - e - g * heading_scale for p, e, g in zip(prior.p, explained, heading_growth, strict=True)]
         motion_growth[:, 8] = _covariance(rest)
         _with_lever_arm(self._to_u_s, inn.h02, inn.h12)
         np.matmul(self._to_u_s, motion_growth, out=carry[6:])
@@ -270,8 +271,9 @@ def _grid(low: float, high: float, steps: float) -> FloatArray:
 
 
 def _set_motion(motion: FloatArray, dx: float, dy: float) -> None:
-    """Fill `motion` with the linear map P -> F P F^T on the upper triangle (xx, xy, xt, yy, yt, tt), F the Jacobian
-    of a displacement (dx, dy) in the heading (eq. 6, over the whole interval)."""
+    """Fill `motion`'s first six columns (its identity already there) with the linear map P -> F P F^T on the upper
+    triangle (xx, xy, xt, yy, yt, tt), F the Jacobian of a displacement (dx, dy) in the heading (eq. 6, over the whole
+    interval)."""
     a, b = -dy, dx
     motion[0, 2], motion[0, 5] = 2.0 * a, a * a
     motion[1, 2], motion[1, 4], motion[1, 5] = b, a, a * b
