@@ -7,10 +7,10 @@ STAMP := $(VENV)/.installed
 
 .PHONY: demo docs test lint clean readme test-broker
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test,plot]'
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[test,plot]'
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -89,7 +89,7 @@ def parse_lines(lines: Iterable[str | bytes]) -> SensorLog:
                 else:
                     log.unknown_types[kind] += 1
             continue
-        if type(record) is Meta:
+        if isinstance(record, Meta):  # (msgspec >= 0.23 types the decoded union: isinstance narrows it)
             log.meta = record
         else:
             events.append(record)
