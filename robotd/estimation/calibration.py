@@ -14,8 +14,10 @@ are the odometry steps (raw twists) and the fixes accepted by the gate; the mode
                                             start with twists (kx vx, ky vy, kw wz) and a heading drift psi per metre
 
 where T, phi (the window's placement in the world) and psi (unequal traction) are nuisance parameters of the window.
-The fit is Gauss-Newton on the fixes' residuals (noise: the fix noise, or the residuals' own spread when larger) plus
-the prior of c from the windows before; the posterior of c is the next prior. Why windows and not the filter's
+The fit is Gauss-Newton on the fixes' residuals plus the prior of c from the windows before; the posterior of c is the
+next prior. The residuals' noise is the fixes' (the residuals' own spread) and the odometry's own random error over
+the window (`odometry_noise`, the filter's model of it), which acts as a random error of the window's scales: a
+window cannot know a scale better than its own odometry lets it (_normal_equations). Why windows and not the filter's
 innovations: the filter absorbs a wrong latency into a position offset at constant velocity, and a wrong scale into
 an innovation bias along the velocity, so innovations confound the two; a window's whole path separates them (scale
 stretches the path, delay shifts it along time, visible wherever the speed changes). Windows are disjoint, so no
@@ -162,6 +164,9 @@ class Calibrator:
         self._data_correlation = start.fix_correlation
         self._heading_judged = False  # judge_fixes has judged the fixes (before any window)
         self._fitted_at = math.nan
+        # the odometry's own random error as the filter models it (robotd.estimation.ekf.ControlNoise's lin2, lat2,
+        # slip2, turn2: the configured noise times the learnt scales); 0 takes a window's path as exact but for c
+        self.odometry_noise: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
         self._clamp()
         self.current = self._snapshot()
         self._start_window(math.nan)
@@ -276,23 +281,26 @@ class Calibrator:
         keep = np.ones(len(fixes), dtype=bool)
         info = prior_info
         sigma2 = rho = 0.0
+        scale_var = self._window_scale_var(path)
         for _ in range(4):
             params = np.concatenate([nuisance, cal])
             residual, jac = _residuals_and_jacobian(path, params, stated, timed, zs)
-            sq = residual[:, 0] ** 2 + residual[:, 1] ** 2
+            # the fixes' noise and correlation are judged on the residuals less the window's own odometry error (a
+            # smooth deformation of the path, which would pass for correlated fixes)
+            judged = residual - _odometry_error(jac, residual, keep, scale_var)
+            sq = judged[:, 0] ** 2 + judged[:, 1] ** 2
             # the fix noise per axis: the residuals' robust spread (a median of chi-square 2 dof is 2 ln 2 sigma^2)
             sigma2 = max(float(np.median(sq[keep])) / (2.0 * math.log(2.0)), 1e-6)
             keep = sq <= (TRIM_SIGMAS**2) * 2.0 * sigma2
             if keep.sum() < MIN_FIXES:
                 return None
-            rho = lag_one_correlation(residual[keep], sigma2)
+            rho = lag_one_correlation(judged[keep], sigma2)
             # correlated fix errors (multipath, a wall's echo) carry less information than as many independent ones:
             # an AR(1) sequence of n values is worth n (1 - rho) / (1 + rho) independent ones
             weight = information(rho) / sigma2
             r = residual[keep].reshape(-1)
             j = jac[keep].reshape(-1, N_NUISANCE + N_CAL)
-            a = j.T @ j * weight
-            g = j.T @ r * weight
+            a, g = _normal_equations(j, r, 1.0 / weight, scale_var)
             a[N_NUISANCE:, N_NUISANCE:] += prior_info
             g[N_NUISANCE:] -= prior_info @ (cal - prior_mean)
             a[3, 3] += 1.0 / PSI_SIGMA**2
@@ -321,6 +329,24 @@ class Calibrator:
         data_rho = _data_correlation(path, np.concatenate([nuisance, cal]), stated, timed, zs, keep)
         covariance = np.linalg.inv(info)[N_NUISANCE:, N_NUISANCE:]
         return _WindowFit(cal, 0.5 * (covariance + covariance.T), prior_cov, n, sigma2, rho, data_rho)
+
+    def _window_scale_var(self, path: _Path) -> FloatArray:
+        """The variances of (kx, ky, kw) that the odometry's own random error over the window amounts to: its error
+        along and across (lin2, lat2 per metre of path) over the distance driven along each body axis, and its
+        heading's (slip2 per metre, turn2 per radian) over the angle turned; at most 1 (a scale the window barely
+        exercises)."""
+        lin2, lat2, slip2, turn2 = self.odometry_noise
+        along = float(np.abs(path.us[:, 0]) @ path.dts)
+        across = float(np.abs(path.us[:, 1]) @ path.dts)
+        turned = float(np.abs(path.us[:, 2]) @ path.dts)
+        driven = float(path.step_dist.sum())
+        return np.array(
+            [
+                _relative_var(lin2 * driven, along),
+                _relative_var(lat2 * driven, across),
+                _relative_var(slip2 * driven + turn2 * turned, turned),
+            ]
+        )
 
     def _commit(self, fit: _WindowFit | None, end: float) -> bool:
         """A closed window's fit (ending at `end`) committed: updates mean and cov and the judgement of the fixes;
@@ -446,6 +472,47 @@ def _data_correlation(  # noqa: PLR0917 - the fit's arrays as they are
     after = residual[keep] - (j @ step).reshape(-1, 2)
     sigma2 = max(float(np.mean(after[:, 0] ** 2 + after[:, 1] ** 2)) / 2.0, 1e-12)
     return lag_one_correlation(after, sigma2)
+
+
+def _relative_var(var: float, span: float) -> float:
+    """An error of variance `var` (m^2 or rad^2) over a motion of `span` (m or rad) as a scale's variance, at most 1."""
+    return min(var / (span * span), 1.0) if span > 0.0 else 1.0
+
+
+_SCALES = [N_NUISANCE + KX, N_NUISANCE + KY, N_NUISANCE + KW]
+
+
+def _normal_equations(
+    j: FloatArray, r: FloatArray, noise_var: float, scale_var: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """J^T W J and J^T W r for residuals r (Jacobian j) whose covariance is noise_var I plus the window's own odometry
+    error: a random error of the scales, of variances scale_var, J_s V J_s^T (J_s the scales' columns).
+
+    Taken as exact, the odometry's random error over one window became a scale error of the fit, which the filter
+    then predicted with as a systematic one. W by the Woodbury identity: (s I + J_s V J_s^T)^-1 = (I - J_s (s V^-1 +
+    J_s^T J_s)^-1 J_s^T) / s, with (s V^-1 + C)^-1 = (s I + V C)^-1 V (V may be 0).
+    """
+    m = j.T @ j
+    b = j.T @ r
+    cross = m[:, _SCALES]
+    v = np.diag(scale_var)
+    k = np.linalg.solve(noise_var * np.eye(3) + v @ m[np.ix_(_SCALES, _SCALES)], v)
+    return (m - cross @ k @ cross.T) / noise_var, (b - cross @ k @ b[_SCALES]) / noise_var
+
+
+def _odometry_error(
+    jac: FloatArray, residual: FloatArray, keep: npt.NDArray[np.bool_], scale_var: FloatArray
+) -> FloatArray:
+    """The part of the residuals (n x 2) that the window's own odometry error explains: its likeliest scale error
+    given the kept residuals (V J_s^T (s I + J_s V J_s^T)^-1 r, s their mean square per axis), through J_s."""
+    js = jac[:, :, _SCALES]
+    kept_js = js[keep].reshape(-1, 3)
+    kept_r = residual[keep].reshape(-1)
+    noise_var = max(float(kept_r @ kept_r) / len(kept_r), 1e-12)
+    v = np.diag(scale_var)
+    error = np.linalg.solve(noise_var * np.eye(3) + v @ (kept_js.T @ kept_js), v @ (kept_js.T @ kept_r))
+    part: FloatArray = js @ error
+    return part
 
 
 def _measured(stated: FloatArray, timed: npt.NDArray[np.bool_], cal: FloatArray) -> FloatArray:

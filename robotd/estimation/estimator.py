@@ -196,6 +196,7 @@ class Estimator:
         first = Anchor(-math.inf, x0, y0, ekf.wrap_angle(th0), ekf.cov_diag(*c.initial_sigma), None)
         self._history = History(self._track, self._predictor, first, c.history_s, keep_past=c.latency_compensation)
         self._use_scales(calibration)
+        self._noise_to_calibrator()
         self._last_accept_t = -math.inf
         self._twist_pace = StreamPace()  # the twist samples' period, and when their stream has paused
         self._wheel_pace = StreamPace()  # the same for wheel samples
@@ -518,8 +519,15 @@ class Estimator:
             self._use_noise_scales(scale)
 
     def _use_noise_scales(self, scale: ProcessNoiseScale) -> None:
-        """Predict with the configured odometry noise times the learnt scales."""
+        """Predict with the configured odometry noise times the learnt scales (and give the calibration that noise)."""
         self._predictor.scale_noise(scale.value, scale.heading_value)
+        self._noise_to_calibrator()
+
+    def _noise_to_calibrator(self) -> None:
+        """The odometry noise in use, which the calibration's windows allow for."""
+        if self._calibrator is not None:
+            n = self._predictor.noise
+            self._calibrator.odometry_noise = (n.lin2, n.lat2, n.slip2, n.turn2)
 
     @property
     def _fixes_judged(self) -> bool:

@@ -203,7 +203,7 @@ def tune(logs: Sequence[SensorLog], config: RobotdConfig, *, lever_arm: bool = F
             sums[k] += w * value
     scales = tuple(round(sums[k] / weights[k], 4) for k in range(3))
     if best.calibrate and scales != tuple(start.odometry_scale):
-        changes.append(f"ekf.odometry_scale: {list(start.odometry_scale)} -> {list(scales)}")
+        changes.append(f"ekf.odometry_scale: {_scales(start.odometry_scale)} -> {_scales(scales)}")
         best = dataclasses.replace(best, odometry_scale=(scales[0], scales[1], scales[2]))
     latency = round(sums[3] / weights[3], 4) if untimed else None
     if latency is not None:
@@ -252,6 +252,11 @@ def _fit_offset(
     return best if gain >= SIGNIFICANT_NLL else None
 
 
+def _scales(scales: Sequence[float]) -> str:
+    """Odometry scales as a YAML list, every digit tuning kept (4 decimals: 4 significant digits made 1.0002 a 1)."""
+    return "[" + ", ".join(f"{v:.6g}" for v in scales) + "]"
+
+
 def yaml_snippet(result: TuneResult) -> str:
     """The configuration lines tuning changed, as YAML to paste into the configuration."""
     e = result.ekf
@@ -260,7 +265,7 @@ def yaml_snippet(result: TuneResult) -> str:
         "ekf:",
     ]
     lines += [f"  {name}: {getattr(e, name):.4g}" for name, _, _ in PARAMETERS]
-    lines.append(f"  odometry_scale: [{e.odometry_scale[0]:.4g}, {e.odometry_scale[1]:.4g}, {e.odometry_scale[2]:.4g}]")
+    lines.append(f"  odometry_scale: {_scales(e.odometry_scale)}")
     if result.latency_s is not None:
         lines += ["marvelmind:", f"  default_latency_s: {result.latency_s:.4g}"]
     if result.ips_offset is not None:

@@ -175,6 +175,43 @@ def test_fixes_sharing_a_slowly_varying_error_do_not_move_the_scales_but_are_dis
     assert white.fix_var == pytest.approx(0.03**2, rel=0.15)
 
 
+TURN_VAR = 0.05**2  # rad^2 per radian turned: the default turn_heading_sigma_rad's
+
+
+def _windows_kw(seed: int, *, allowed_for: bool, windows: int) -> tuple[float, float]:
+    """A robot driving a slalom (0.3 m/s, turning at 0.6 rad/s one way then the other) whose true heading wanders by
+    TURN_VAR per radian from what its exact-scale odometry says, with 1 cm fixes at 20 Hz: the rotation scale and its
+    sigma after `windows` windows, the calibrator told that noise (`allowed_for`) or not."""
+    rng = np.random.default_rng(seed)
+    calibrator = Calibrator(Calibration(), CalibrationLimits(), (0.0, 0.0))
+    if allowed_for:
+        calibrator.odometry_noise = (0.0, 0.0, 0.0, TURN_VAR)
+    t, dt, x, y, heading = 0.0, 0.025, 0.0, 0.0, 0.0
+    while calibrator.windows < windows:
+        wz = 0.6 * np.sign(np.sin(0.6 * t))  # the turns alternate: a scale of the turn, not a drift per metre
+        turn = wz * dt + rng.normal(0.0, np.sqrt(TURN_VAR * abs(wz) * dt))
+        x += 0.3 * dt * np.cos(heading + 0.5 * turn)
+        y += 0.3 * dt * np.sin(heading + 0.5 * turn)
+        heading += turn
+        calibrator.on_step(t, t + dt, (0.3, 0.0, wz))
+        t += dt
+        if round(t / dt) % 2 == 0:
+            calibrator.on_fix(t, x + rng.normal(0.0, 0.01), y + rng.normal(0.0, 0.01), timed=True)
+    return calibrator.current.kw, calibrator.current.sigmas[calibration.KW]
+
+
+def test_the_rotation_scale_is_no_surer_than_the_odometrys_own_turning_error_allows() -> None:
+    # Over a window the heading's random error from turning (TURN_VAR, the filter's own model of it) is a rotation
+    # scale error the fixes cannot tell from a scale. Taken as exact, the fit claimed two thirds of the sigma it has
+    # (the squared errors over their variances averaged 2.2); allowed for, they average about 1 (the true scale is 1)
+    told = [_windows_kw(seed, allowed_for=True, windows=3) for seed in range(24)]
+    z = np.array([(kw - 1.0) / sigma for kw, sigma in told])
+    assert 0.5 < np.mean(z * z) < 1.6
+    untold = [_windows_kw(seed, allowed_for=False, windows=3) for seed in range(24)]
+    z = np.array([(kw - 1.0) / sigma for kw, sigma in untold])
+    assert np.mean(z * z) > 1.8
+
+
 def test_a_slow_beacon_calibrates_too() -> None:
     # 4 Hz at 0.3 m/s puts 20 fixes on a 1.5 m window, fewer than a window needs to move the scales: the window
     # travels on until it holds enough (it used to close and decide nothing, so a slow beacon never calibrated)
