@@ -495,9 +495,17 @@ def _normal_equations(
     m = j.T @ j
     b = j.T @ r
     cross = m[:, _SCALES]
-    v = np.diag(scale_var)
-    k = np.linalg.solve(noise_var * np.eye(3) + v @ m[np.ix_(_SCALES, _SCALES)], v)
+    k = _scale_gain(m[np.ix_(_SCALES, _SCALES)], noise_var, scale_var)
     return (m - cross @ k @ cross.T) / noise_var, (b - cross @ k @ b[_SCALES]) / noise_var
+
+
+def _scale_gain(c: FloatArray, noise_var: float, scale_var: FloatArray) -> FloatArray:
+    """(s V^-1 + C)^-1 = (s I + V C)^-1 V for C = J_s^T J_s, s = noise_var, V = diag(scale_var) (which may be 0):
+    what the window's own odometry error takes of the scales' columns (_normal_equations), and its likeliest value
+    per unit of J_s^T r (_odometry_error)."""
+    v = np.diag(scale_var)
+    gain: FloatArray = np.linalg.solve(noise_var * np.eye(3) + v @ c, v).astype(np.float64, copy=False)
+    return gain
 
 
 def _odometry_error(
@@ -509,8 +517,7 @@ def _odometry_error(
     kept_js = js[keep].reshape(-1, 3)
     kept_r = residual[keep].reshape(-1)
     noise_var = max(float(kept_r @ kept_r) / len(kept_r), 1e-12)
-    v = np.diag(scale_var)
-    error = np.linalg.solve(noise_var * np.eye(3) + v @ (kept_js.T @ kept_js), v @ (kept_js.T @ kept_r))
+    error = _scale_gain(kept_js.T @ kept_js, noise_var, scale_var) @ (kept_js.T @ kept_r)
     part: FloatArray = js @ error
     return part
 

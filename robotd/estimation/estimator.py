@@ -666,10 +666,8 @@ class Estimator:
         return c * ox - s * oy, s * ox + c * oy
 
     def _lever_arm_var(self) -> float:
-        """The variance per axis of the lever arm's part of the position while the heading is unknown (0 when
-        known): of a vector of length |o| at a heading known to within sigma, |o|^2 (1 - exp(-sigma^2)) / 2."""
-        if self.modes.heading_known:
-            return 0.0
+        """The variance per axis of the lever arm's part of the position, with the heading unknown (the caller asks
+        only then): of a vector of length |o| at a heading known to within sigma, |o|^2 (1 - exp(-sigma^2)) / 2."""
         shrink = self._predictor.provisional[0]
         return 0.5 * (self._offset[0] ** 2 + self._offset[1] ** 2) * (1.0 - shrink * shrink)
 
@@ -696,8 +694,7 @@ class Estimator:
         """Start a new heading window at the newest step, or at time `at` on the track when given (a fix's
         measurement time: the fix is then the window's first)."""
         track = self._track
-        pose = None if at is None else track.pose_at(at)
-        if at is not None and pose is not None:
+        if at is not None and (pose := track.pose_at(at)) is not None:
             self._aligner.restart(at, pose, track.travel_at(at)[0])
             return
         t, newest, dist = track.newest(self._history.start)
@@ -832,7 +829,7 @@ class Estimator:
             xx, xy, xt, yy, yt, tt = p
             p = (xx + ux * ux, xy + ux * uy, xt + ux * uw, yy + uy * uy, yt + uy * uw, tt + uw * uw)
         shared = self._calibration.fix_correlated_var
-        if not self.modes.heading_known:
+        if not self.modes.heading_known:  # the lever arm's share is known with the heading
             shared += self._lever_arm_var()
         if shared > 0.0:
             p = (p[0] + shared, p[1], p[2], p[3] + shared, p[4], p[5])

@@ -217,21 +217,14 @@ class ProcessNoiseScale:
         heading_growth = [g * heading_q for g in spread]
         motion_growth[0, 6] = motion_growth[3, 6] = position_q
         motion_growth[:, 7] = heading_growth
-        # robotd's growth through the scales' uncertainty and the rest: its own (prior.p less F before.p F^T), less
-        # its odometry noise at the scales in use; every shadow grows by it, and by its own scales' odometry noise
-        bxx, bxy, bxt, byy, byt, btt = before.p
-        a, b = -dy, dx
-        own = position_q * self.value  # F before.p F^T (_set_motion's map) and the position noise at the scale in use
-        explained = (
-            bxx + 2.0 * a * bxt + a * a * btt + own,
-            bxy + b * bxt + a * byt + a * b * btt,
-            bxt + a * btt,
-            byy + 2.0 * b * byt + b * b * btt + own,
-            byt + b * btt,
-            btt,
-        )
-        heading_scale = self.heading_value
-        rest = [p - e - g * heading_scale for p, e, g in zip(prior.p, explained, heading_growth, strict=True)]
+        # robotd's growth through the scales' uncertainty and the rest: its own (prior.p less F before.p F^T, the map
+        # _set_motion filled), less its odometry noise at the scales in use; every shadow grows by it, and by its own
+        # scales' odometry noise
+        moved = (motion_growth[:, :6] @ before.p).tolist()
+        position, heading_scale = position_q * self.value, self.heading_value
+        rest = [p - m - g * heading_scale for p, m, g in zip(prior.p, moved, heading_growth, strict=True)]
+        rest[0] -= position
+        rest[3] -= position
         motion_growth[:, 8] = _covariance(rest)
         _with_lever_arm(self._to_u_s, inn.h02, inn.h12)
         np.matmul(self._to_u_s, motion_growth, out=carry[6:])

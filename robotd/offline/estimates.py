@@ -38,14 +38,14 @@ def write_estimates(stream: BinaryIO, poses: FloatArray, cov: Sequence[ekf.Cov])
     """Write estimates.jsonl lines: `poses` one row (t, x, y, theta) per estimate, `cov` P's upper triangle of each.
 
     Rounded in numpy and encoded a chunk at a time: an hour's replay writes some 360 000 lines, and a round() per
-    number, a call per covariance and an encoder call per line took twice as long.
+    number and an encoder call per line took twice as long.
     """
     for start in range(0, len(poses), _CHUNK):
         rounded = np.round(poses[start : start + _CHUNK], DECIMALS)
         columns = (rounded[:, k].tolist() for k in range(4))
         lines = [
-            Estimate(t, x, y, theta, (xx, xy, xt, xy, yy, yt, xt, yt, tt))  # ekf.cov_full, written out
-            for t, x, y, theta, (xx, xy, xt, yy, yt, tt) in zip(*columns, cov[start : start + _CHUNK], strict=True)
+            Estimate(t, x, y, theta, ekf.cov_full(p))
+            for t, x, y, theta, p in zip(*columns, cov[start : start + _CHUNK], strict=True)
         ]
         stream.write(_ENCODER.encode_lines(lines))
 
