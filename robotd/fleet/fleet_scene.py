@@ -141,7 +141,7 @@ class FleetScene:
         channels.poses.add(t, pose)
         if t >= channels.next_trail:
             channels.next_trail = t + self.trail_period_s
-            channels.trail.log(scene.trail(t_ns, channels.poses.points()), log_time=t_ns)
+            channels.trail.log(channels.poses.message(t_ns), log_time=t_ns)
         return True
 
 

@@ -59,7 +59,7 @@ class _Method:
             self.trail.add(float(t), pose)
             if t >= next_trail:
                 next_trail = float(t) + TRAIL_PERIOD_S
-                self.trail_channel.log(scene.trail(t_ns, self.trail.points()), log_time=t_ns)
+                self.trail_channel.log(self.trail.message(t_ns), log_time=t_ns)
 
 
 def _ekf_poses(result: ReplayResult) -> Iterator[dict[str, Any]]:

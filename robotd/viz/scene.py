@@ -65,7 +65,8 @@ def _rotation(theta: float) -> Quaternion:
     return Quaternion(x=qx, y=qy, z=qz, w=qw)
 
 
-def _pose(p: Pose2) -> Pose:
+def pose_message(p: Pose2) -> Pose:
+    """A planar pose as Foxglove's (z 0, a rotation about z)."""
     return Pose(position=Vector3(x=p[0], y=p[1], z=0.0), orientation=_rotation(p[2]))
 
 
@@ -75,7 +76,7 @@ def _colour(rgba: tuple[float, float, float, float]) -> Color:
 
 def pose_in_frame(t_ns: int, pose: Pose2, frame: str = MAP) -> PoseInFrame:
     """A planar pose in `frame`."""
-    return PoseInFrame(timestamp=stamp(t_ns), frame_id=frame, pose=_pose(pose))
+    return PoseInFrame(timestamp=stamp(t_ns), frame_id=frame, pose=pose_message(pose))
 
 
 def odometry(t_ns: int, pose: Pose2, twist: Sequence[float], cov: Sequence[float], t: float) -> Odometry:
@@ -86,16 +87,16 @@ def odometry(t_ns: int, pose: Pose2, twist: Sequence[float], cov: Sequence[float
         timestamp=stamp(t_ns),
         frame_id=MAP,
         body_frame_id=BASE_LINK,
-        pose=_pose(pose),
+        pose=pose_message(pose),
         linear_velocity=Vector3(x=twist[0], y=twist[1], z=0.0),
         angular_velocity=Vector3(x=0.0, y=0.0, z=twist[2]),
         pose_covariance=covariance_6x6(cov),
     )
 
 
-def trail(t_ns: int, poses: Iterable[Pose2], frame: str = MAP) -> PosesInFrame:
-    """A trail of poses, oldest first."""
-    return PosesInFrame(timestamp=stamp(t_ns), frame_id=frame, poses=[_pose(p) for p in poses])
+def trail(t_ns: int, poses: list[Pose], frame: str = MAP) -> PosesInFrame:
+    """A trail of poses (each built by `pose_message`), oldest first."""
+    return PosesInFrame(timestamp=stamp(t_ns), frame_id=frame, poses=poses)
 
 
 def ellipse(t_ns: int, center: tuple[float, float], cov: Sequence[float]) -> SceneUpdate:
@@ -114,7 +115,7 @@ def ellipse(t_ns: int, center: tuple[float, float], cov: Sequence[float]) -> Sce
 def fix_marker(t_ns: int, number: int, at_xy: tuple[float, float], verdict: str, nis: float | None) -> SceneUpdate:
     """One IPS fix as a dot coloured by its verdict, labelled with it (and its NIS), kept for FIX_LIFETIME_S."""
     colour = _colour(VERDICT_COLOURS.get(verdict, VERDICT_COLOURS["dropped"]))
-    at = _pose((at_xy[0], at_xy[1], 0.0))
+    at = pose_message((at_xy[0], at_xy[1], 0.0))
     label = verdict if nis is None else f"{verdict} (NIS {nis:.1f})"
     entity = SceneEntity(
         timestamp=stamp(t_ns),
