@@ -203,8 +203,9 @@ class Estimator:
         self._last_twist_t = -math.inf
         self._fixes_timed = False  # whether the newest fix stated its measurement time
         self._wheels = WheelFeed(TickKinematics(geometry, counts_per_rev), c.predict_period_s)
-        # the state at the newest step: (newest anchor, that step's list index, the state there), or None
-        self._newest: tuple[Anchor, int, State] | None = None
+        # the outputs' carry from the newest anchor: (that anchor, the list index of the first step ending after it,
+        # the state at the end of each step since), or None
+        self._carried: tuple[Anchor, int, list[State]] | None = None
         self._unsettled: _FixToLearn | None = None  # the last fix, until what it teaches is learnt (settle)
         self._aligner = HeadingAligner(c.heading_align_m, self._offset, enabled=c.heading_align_m > 0.0)
         self._heading_check = HeadingCheck()
@@ -334,7 +335,7 @@ class Estimator:
             self.modes.lose_heading()
             self.counters["heading_lost"] += 1
             self._predictor.provisional = NO_PROVISIONAL_HEADING
-            self._newest = None
+            self._carried = None
 
     def _after_pause(self, start: float) -> None:
         """After a pause in the odometry that began at `start` while the robot moved: the anchors since made again on
@@ -381,7 +382,7 @@ class Estimator:
         needed = self._history.trim(now, self._pending)
         if needed > TRIM_STEPS:
             self._track.drop_before(needed)
-            self._newest = None  # its step index moved
+            self._carried = None  # its step index moved
 
     def _pending(self) -> Twist3:
         """The twist beyond the newest step: that of the samples fed since (their mean), or the one in force."""
@@ -432,7 +433,7 @@ class Estimator:
         k = bisect.bisect_right(history.times, t_meas) - 1
         if t_meas < newest_step or k < len(anchors) - 1:
             counters["late_fixes"] += 1
-        prior = history.state_at(anchors[k], t_meas, self._pending)
+        prior = self._state_at(anchors[k], t_meas)
         px, py, pth, pp, psens = prior
         r = gate.r
         if not timed and self.config.latency_compensation:
@@ -494,7 +495,7 @@ class Estimator:
         if not self.modes.heading_known and self.modes.placed:
             self._provisional_heading()
         # an output taken before this (the fix's own pose) carried the state with the noise and scales then in use
-        self._newest = None
+        self._carried = None
 
     def _learn_process_noise(self, scale: ProcessNoiseScale, fix: _FixToLearn) -> None:
         """Give an accepted fix's innovation, with the state before it and the anchor it left, to the process noise
@@ -562,7 +563,7 @@ class Estimator:
         self.counters["calibration_windows"] += calibration.windows - windows
         self._fix_gate.trust_quieter_fixes(calibration.persistent_fix_var)
         self._use_scales(calibration)
-        self._newest = None  # states carried with the old scales
+        self._carried = None  # states carried with the old scales
 
     def _use_scales(self, calibration: Calibration) -> None:
         """Predict with the calibration's odometry scales and, while it learns them, their uncertainty."""
@@ -625,7 +626,7 @@ class Estimator:
             first = history.anchors[k + 1]
             state = history.state_at(history.anchors[k], first.t, self._pending)
             history.place(k, self._remake(state, first), self._remake, self._pending)
-            self._newest = None
+            self._carried = None
 
     def _remake(self, state: State, old: Anchor) -> Anchor:
         """An anchor made again at its time from the state there: its fix fused again, its seed moved again."""
@@ -735,7 +736,7 @@ class Estimator:
             provisional = (math.exp(-0.5 * sigma * sigma), ekf.wrap_angle(rotation - (theta - turned)))
         if provisional != self._predictor.provisional:
             self._predictor.provisional = provisional
-            self._newest = None  # states carried with the old provisional heading
+            self._carried = None  # states carried with the old provisional heading
 
     def _realign(self, fit: RotationFit) -> None:
         """Restart the state from the window's fit: its heading, and the position its translation puts it at."""
@@ -759,18 +760,31 @@ class Estimator:
         carry the previous output's state on, step by step)."""
         history, track = self._history, self._track
         anchor, newest = history.anchors[-1], len(track.t) - 1
-        cached = self._newest
-        if cached is not None and cached[0] is anchor and cached[1] <= newest:
-            if cached[1] < newest:
-                state = history.carry(cached[2], track.t[cached[1]], cached[1] + 1, newest)
-                self._newest = (anchor, newest, state)
-                return state
-            return cached[2]
+        carried = self._carried
+        if carried is not None and carried[0] is anchor:
+            first, states = carried[1], carried[2]
+            last = first + len(states) - 1
+            if last < newest:
+                return history.carry(states[-1], track.t[last], last + 1, newest, states)
+            if last == newest:
+                return states[-1]
         if newest < 0 or track.t[newest] <= anchor.t:
             return anchor.state
-        state = history.state_at(anchor, track.t[newest], self._pending)
-        self._newest = (anchor, newest, state)
-        return state
+        first, states = bisect.bisect_right(track.t, anchor.t), []
+        self._carried = (anchor, first, states)
+        return history.carry(anchor.state, anchor.t, first, newest, states)
+
+    def _state_at(self, anchor: Anchor, t: float) -> State:
+        """The state at t carried from anchor (history.state_at): taken up from the outputs' carry when that began at
+        the same anchor, whose states are the same moves (a fix's prior, measured before the newest step)."""
+        carried = self._carried
+        if carried is not None and carried[0] is anchor:
+            first, states = carried[1], carried[2]
+            steps_t = self._track.t
+            j = bisect.bisect_right(steps_t, t, first) - 1
+            if first <= j < first + len(states):
+                return self._history.move_within(states[j - first], steps_t[j], t, self._pending)
+        return self._history.state_at(anchor, t, self._pending)
 
     def pose(self, t: float | None = None) -> PoseEstimate:
         """The estimate, extrapolated with the twist in force to time t when t is later than the newest input."""

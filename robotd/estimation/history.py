@@ -216,18 +216,22 @@ class History:
             at = steps_t[j]
         return self.move_within(state, at, t, pending)
 
-    def carry(self, state: State, at: float, b: int, j: int) -> State:
-        """The state at `at` (within step b, or at its start) carried to the end of step j >= b."""
+    def carry(self, state: State, at: float, b: int, j: int, into: list[State] | None = None) -> State:
+        """The state at `at` (within step b, or at its start) carried to the end of step j >= b; the state at the end
+        of each step appended to `into` when given."""
         track, move = self.track, self.predictor.move
         vx, vy, wz, steps_t, gap_var = track.vx, track.vy, track.wz, track.t, track.gap_var
+        states = [] if into is None else into
         if steps_t[b] > at:
             state = move(state, (vx[b], vy[b], wz[b]), steps_t[b] - at)
             if gap_var[b]:
                 state = self._blurred(state, b, (steps_t[b] - at) / (steps_t[b] - steps_t[b - 1]))
+        states.append(state)
         for k in range(b + 1, j + 1):
             state = move(state, (vx[k], vy[k], wz[k]), steps_t[k] - steps_t[k - 1])
             if gap_var[k]:
                 state = self._blurred(state, k, 1.0)
+            states.append(state)
         return state
 
     def _blurred(self, state: State, k: int, share: float) -> State:
