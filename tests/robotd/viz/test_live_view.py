@@ -4,6 +4,7 @@ loopback, the real SDK server), and what it decodes is what the pose socket says
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import math
 import time
@@ -87,6 +88,32 @@ async def test_a_foxglove_client_sees_the_pose_and_covariance_the_pose_socket_se
     control = got["/control"][-1].message
     assert control["measured_rad_s"] == [2.0, 2.0, 2.0, 2.0]
     assert control["period_ms"] is not None
+
+
+async def test_the_trail_holds_the_fused_poses_a_centimetre_apart_and_grows_as_the_robot_drives(
+    tmp_path: Path,
+) -> None:
+    daemon = start_daemon(tmp_path)
+    async with running(daemon):
+        await until(lambda: daemon.viewer is not None and daemon.viewer.port is not None, "the live view's server")
+        assert daemon.viewer is not None
+        assert daemon.viewer.port is not None
+        client = await FoxgloveClient.open(daemon.viewer.port)
+        try:
+            await client.subscribe(["/pose", "/pose/trail"])
+            got = await client.collect({"/pose": 40, "/pose/trail": 3})
+        finally:
+            await client.close()
+    trails = [r.message.poses for r in got["/pose/trail"]]
+    assert all(r.message.frame_id == "map" for r in got["/pose/trail"])
+    assert len(trails[-1]) > len(trails[0]) >= 1, "the robot drives: the trail grows"
+    points = [(p.position.x, p.position.y, yaw(p.orientation)) for p in trails[-1]]
+    for (x0, y0, th0), (x1, y1, th1) in itertools.pairwise(points):
+        turned = abs(math.remainder(th1 - th0, math.tau))
+        assert math.hypot(x1 - x0, y1 - y0) >= 0.01 or turned >= 0.05, "a pose is kept once the robot moved"
+    fused = {(r.message.pose.position.x, r.message.pose.position.y) for r in got["/pose"]}
+    kept = {(x, y) for x, y, _ in points}
+    assert kept & fused, "the trail's poses are fused poses the viewer was sent"
 
 
 async def test_fixes_are_drawn_coloured_by_verdict_and_beacons_appear_when_reported(tmp_path: Path) -> None:
