@@ -9,7 +9,9 @@ Topic | what
 `/replay/<method>/pose`, `/replay/<method>/trail` | `paper_ekf`, `gated_ekf`, `odometry` (scored runs only) and `truth`,
   in the map
 
-Messages are stamped with the log's time (seconds from its clock's zero).
+Messages are stamped with the log's time (seconds from its clock's zero). Trails reach `viewer.trail_s` back, as the
+live view's: each is sent whole every TRAIL_PERIOD_S, so a trail of the whole log made the file grow with the square of
+the log's length (a 7-minute log's MCAP was 169 MB, nearly all trails; an hour's would have been some 10 GB).
 """
 
 from __future__ import annotations
@@ -42,11 +44,11 @@ TRAIL_PERIOD_S = 1.0
 class _Method:
     """One method's pose and trail channels."""
 
-    def __init__(self, context: foxglove.Context, name: str, trajectory: Trajectory) -> None:
+    def __init__(self, context: foxglove.Context, name: str, trajectory: Trajectory, trail_s: float) -> None:
         self.pose = PoseInFrameChannel(f"/replay/{name}/pose", context=context)
         self.trail_channel = PosesInFrameChannel(f"/replay/{name}/trail", context=context)
         self.trajectory = trajectory
-        self.trail = Trail(math.inf)
+        self.trail = Trail(trail_s)
 
     def publish(self, clock: LogClock) -> None:
         """Every pose, and the trail so far every TRAIL_PERIOD_S."""
@@ -78,12 +80,13 @@ def write_replay_mcap(log: SensorLog, result: ReplayResult, config: RobotdConfig
     context = foxglove.Context()
     clock = LogClock()
     robot = RobotModel(config.ekf, result.geometry, result.ips_offset, result.counts_per_rev)
-    publisher = Publisher(context, robot, clock, trail_s=math.inf, trail_period_s=TRAIL_PERIOD_S)
+    trail_s = config.viewer.trail_s
+    publisher = Publisher(context, robot, clock, trail_s=trail_s, trail_period_s=TRAIL_PERIOD_S)
     baselines = (("paper_ekf", result.paper), ("gated_ekf", result.gated), ("odometry", result.odometry))
-    methods = [_Method(context, name, traj) for name, traj in baselines if len(traj)]
+    methods = [_Method(context, name, traj, trail_s) for name, traj in baselines if len(traj)]
     truth = [(e.t, e.x, e.y, e.theta) for e in log.events if isinstance(e, Truth)]
     if truth:
-        methods.append(_Method(context, "truth", Trajectory.from_samples(truth)))
+        methods.append(_Method(context, "truth", Trajectory.from_samples(truth), trail_s))
     with foxglove.open_mcap(path, allow_overwrite=True, context=context):
         publisher.record(log.meta)
         poses = _ekf_poses(result)
