@@ -156,13 +156,17 @@ def _out_of_collectors_sight() -> Iterator[None]:
     """While inside, the objects made before are left out of the cyclic collector's passes (gc.freeze).
 
     A replay holds the log's events, and then its estimates, alive throughout: each full pass walked them all, a
-    tenth of an hour's replay and of writing its estimates (refcounting still frees them after).
+    tenth of an hour's replay and of writing its estimates (refcounting still frees them after). A process that had
+    frozen objects of its own (the daemon freezes what it built at start) keeps them frozen: unfreezing is all or none,
+    so the replay's objects then stay out of sight too.
     """
+    frozen_by_caller = gc.get_freeze_count() > 0
     gc.freeze()
     try:
         yield
     finally:
-        gc.unfreeze()
+        if not frozen_by_caller:
+            gc.unfreeze()
 
 
 def replay(log: SensorLog, config: RobotdConfig, start: calibration_store.Saved | None = None) -> ReplayResult:

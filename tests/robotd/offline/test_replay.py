@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import gc
 import json
 from pathlib import Path
 from typing import Any
@@ -222,6 +223,23 @@ def test_without_truth_only_robotds_filter_runs_and_its_estimates_do_not_change(
     assert without.ekf_cov == with_truth.ekf_cov
     assert without.counters == with_truth.counters
     assert repr(without.diagnostics) == repr(with_truth.diagnostics)
+
+
+def test_a_replay_gives_the_cyclic_collector_back_as_it_found_it() -> None:
+    # the replay hides its objects from the collector while it runs (gc.freeze); a caller's frozen heap stays frozen
+    full = simulated(sim_config(), 2)
+    log = SensorLog(full.meta, full.events[:500])
+    gc.unfreeze()  # nothing frozen, whatever ran before in this process
+    replay(log, parse(""))
+    assert gc.get_freeze_count() == 0
+    kept = [object()]  # a caller's start-up heap: once frozen, no generation of the collector lists it
+    gc.freeze()
+    try:
+        replay(log, parse(""))
+        assert not any(o is kept for o in gc.get_objects()), "the caller's frozen objects are still frozen"
+    finally:
+        gc.unfreeze()
+    assert any(o is kept for o in gc.get_objects())
 
 
 def test_a_log_in_unix_time_replays_as_the_same_log_from_zero() -> None:
