@@ -67,8 +67,7 @@ def test_a_replays_trails_reach_back_as_far_as_the_live_views(tmp_path: Path) ->
         pool.Add(file)
     poses = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name)).FromString(last.data).poses
     path = sum(
-        math.hypot(b.position.x - a.position.x, b.position.y - a.position.y)
-        for a, b in itertools.pairwise(poses)
+        math.hypot(b.position.x - a.position.x, b.position.y - a.position.y) for a, b in itertools.pairwise(poses)
     )
     assert 0.0 < path <= top_speed * 5.0 + 0.02, "the trail holds the last 5 s of the drive, not all of it"
 
