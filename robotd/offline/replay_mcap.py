@@ -42,7 +42,7 @@ TRAIL_PERIOD_S = 1.0
 
 
 class _Method:
-    """One method's pose and trail channels."""
+    """One method's pose and trail channels (the trail reaching trail_s back)."""
 
     def __init__(self, context: foxglove.Context, name: str, trajectory: Trajectory, trail_s: float) -> None:
         self.pose = PoseInFrameChannel(f"/replay/{name}/pose", context=context)
@@ -51,7 +51,7 @@ class _Method:
         self.trail = Trail(trail_s)
 
     def publish(self, clock: LogClock) -> None:
-        """Every pose, and the trail so far every TRAIL_PERIOD_S."""
+        """Every pose, and the trail of the last trail_s seconds every TRAIL_PERIOD_S."""
         next_trail = -math.inf
         traj = self.trajectory
         for t, x, y, theta in zip(traj.t, traj.x, traj.y, traj.theta, strict=True):
