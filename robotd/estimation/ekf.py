@@ -43,6 +43,7 @@ is J diag(v), J = d pose / d e the pose's sensitivity to a scale error, with
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple, TypeVar
 
@@ -72,8 +73,8 @@ def wrap_angle(angle: Angle) -> Angle:
     return wrapped
 
 
-def cov_full(p: Cov) -> tuple[float, float, float, float, float, float, float, float, float]:
-    """The 3x3 covariance, row-major, from its upper triangle."""
+def cov_full(p: Sequence[float]) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """The 3x3 covariance, row-major, from its upper triangle (xx, xy, xt, yy, yt, tt)."""
     xx, xy, xt, yy, yt, tt = p
     return (xx, xy, xt, xy, yy, yt, xt, yt, tt)
 

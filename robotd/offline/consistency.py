@@ -14,11 +14,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from robotd.estimation.ekf import Cov
 from robotd.estimation.fixgate import Diagnostics
 from robotd.estimation.modes import Verdict
 from robotd.offline.metrics import Trajectory
+
+FloatArray = npt.NDArray[np.float64]
 
 CHI2_2DOF_95 = 5.991464547107979  # -2 ln(0.05): the 95 % quantile of a chi-square with 2 dof
 
@@ -50,8 +53,9 @@ class Consistency:
         }
 
 
-def position_nees(truth: Trajectory, estimates: Trajectory, covariances: Sequence[Cov]) -> np.ndarray:
-    """Each estimate's position NEES against truth (estimates outside the truth's span left out)."""
+def position_nees(truth: Trajectory, estimates: Trajectory, covariances: Sequence[Cov] | FloatArray) -> np.ndarray:
+    """Each estimate's position NEES against truth (estimates outside the truth's span left out); covariances: P's
+    upper triangle of each estimate."""
     if len(estimates) == 0 or len(truth) == 0:
         return np.zeros(0)
     tx, ty, _, inside = truth.at(estimates.t)
@@ -66,7 +70,10 @@ def position_nees(truth: Trajectory, estimates: Trajectory, covariances: Sequenc
 
 
 def consistency(
-    truth: Trajectory | None, estimates: Trajectory, covariances: Sequence[Cov], diagnostics: Sequence[Diagnostics]
+    truth: Trajectory | None,
+    estimates: Trajectory,
+    covariances: Sequence[Cov] | FloatArray,
+    diagnostics: Sequence[Diagnostics],
 ) -> Consistency:
     """NEES statistics (when there is truth) and NIS statistics of a filter's run."""
     nees = position_nees(truth, estimates, covariances) if truth is not None else np.zeros(0)

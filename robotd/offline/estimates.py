@@ -6,7 +6,6 @@ sensor log's numbers), the 3x3 covariance row-major in full precision.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from pathlib import Path
 from typing import BinaryIO
 
@@ -34,8 +33,9 @@ _ENCODER = msgspec.json.Encoder()
 _CHUNK = 8192  # estimates encoded at a time: an hour's file is about 90 MB
 
 
-def write_estimates(stream: BinaryIO, poses: FloatArray, cov: Sequence[ekf.Cov]) -> None:
-    """Write estimates.jsonl lines: `poses` one row (t, x, y, theta) per estimate, `cov` P's upper triangle of each.
+def write_estimates(stream: BinaryIO, poses: FloatArray, cov: FloatArray) -> None:
+    """Write estimates.jsonl lines: `poses` one row (t, x, y, theta) per estimate, `cov` one row (P's upper triangle)
+    per estimate.
 
     Rounded in numpy and encoded a chunk at a time: an hour's replay writes some 360 000 lines, and a round() per
     number and an encoder call per line took twice as long.
@@ -43,10 +43,8 @@ def write_estimates(stream: BinaryIO, poses: FloatArray, cov: Sequence[ekf.Cov])
     for start in range(0, len(poses), _CHUNK):
         rounded = np.round(poses[start : start + _CHUNK], DECIMALS)
         columns = (rounded[:, k].tolist() for k in range(4))
-        lines = [
-            Estimate(t, x, y, theta, ekf.cov_full(p))
-            for t, x, y, theta, p in zip(*columns, cov[start : start + _CHUNK], strict=True)
-        ]
+        rows = cov[start : start + _CHUNK].tolist()
+        lines = [Estimate(t, x, y, theta, ekf.cov_full(p)) for t, x, y, theta, p in zip(*columns, rows, strict=True)]
         stream.write(_ENCODER.encode_lines(lines))
 
 

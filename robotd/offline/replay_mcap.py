@@ -67,10 +67,11 @@ class _Method:
 def _ekf_poses(result: ReplayResult) -> Iterator[dict[str, Any]]:
     """robotd's estimates as the pose socket's messages (without the twist, which the replay does not keep)."""
     traj, placed_at = result.ekf, next((d.t for d in result.diagnostics if d.accepted), math.inf)
+    covariances = result.ekf_cov.tolist()
     for k, t in enumerate(traj.t):
         yield {
             "t": float(t), "x": float(traj.x[k]), "y": float(traj.y[k]), "theta": float(traj.theta[k]),
-            "vx": 0.0, "vy": 0.0, "wz": 0.0, "covariance": list(ekf.cov_full(result.ekf_cov[k])),
+            "vx": 0.0, "vy": 0.0, "wz": 0.0, "covariance": list(ekf.cov_full(covariances[k])),
             "fix_state": "tracking" if t >= placed_at else "initialising",
         }  # fmt: skip
 

@@ -49,7 +49,7 @@ async def test_a_replay_of_the_mcap_recording_equals_a_replay_of_the_json_lines_
     assert a.diagnostics, "the fixes were judged"
     assert list(a.ekf.x) == list(b.ekf.x)
     assert list(a.ekf.y) == list(b.ekf.y)
-    assert a.ekf_cov == b.ekf_cov
+    assert a.ekf_cov.tolist() == b.ekf_cov.tolist()
 
 
 async def test_the_mcap_recording_holds_what_the_daemon_published_beside_the_log(tmp_path: Path) -> None:
