@@ -42,13 +42,18 @@ def start_daemon(tmp_path: Path) -> Daemon:
     return Daemon(config, encoders=RollingEncoders(time.monotonic), motors_factory=FakeMotors)
 
 
+async def connect_viewer(daemon: Daemon) -> FoxgloveClient:
+    """A Foxglove client connected to the running daemon's live view, once its server is up."""
+    await until(lambda: daemon.viewer is not None and daemon.viewer.port is not None, "the live view's server")
+    assert daemon.viewer is not None
+    assert daemon.viewer.port is not None
+    return await FoxgloveClient.open(daemon.viewer.port)
+
+
 async def test_a_foxglove_client_sees_the_pose_and_covariance_the_pose_socket_sends(tmp_path: Path) -> None:
     daemon = start_daemon(tmp_path)
     async with running(daemon):
-        await until(lambda: daemon.viewer is not None and daemon.viewer.port is not None, "the live view's server")
-        assert daemon.viewer is not None
-        assert daemon.viewer.port is not None
-        client = await FoxgloveClient.open(daemon.viewer.port)
+        client = await connect_viewer(daemon)
         poses: dict[float, dict[str, Any]] = {}
         stop = asyncio.Event()
         await until((tmp_path / "pose.sock").exists, "the pose socket")
@@ -95,10 +100,7 @@ async def test_the_trail_holds_the_fused_poses_a_centimetre_apart_and_grows_as_t
 ) -> None:
     daemon = start_daemon(tmp_path)
     async with running(daemon):
-        await until(lambda: daemon.viewer is not None and daemon.viewer.port is not None, "the live view's server")
-        assert daemon.viewer is not None
-        assert daemon.viewer.port is not None
-        client = await FoxgloveClient.open(daemon.viewer.port)
+        client = await connect_viewer(daemon)
         try:
             await client.subscribe(["/pose", "/pose/trail"])
             got = await client.collect({"/pose": 40, "/pose/trail": 3})
@@ -119,10 +121,7 @@ async def test_the_trail_holds_the_fused_poses_a_centimetre_apart_and_grows_as_t
 async def test_fixes_are_drawn_coloured_by_verdict_and_beacons_appear_when_reported(tmp_path: Path) -> None:
     daemon = start_daemon(tmp_path)
     async with running(daemon):
-        await until(lambda: daemon.viewer is not None and daemon.viewer.port is not None, "the live view's server")
-        assert daemon.viewer is not None
-        assert daemon.viewer.port is not None
-        client = await FoxgloveClient.open(daemon.viewer.port)
+        client = await connect_viewer(daemon)
         try:
             await client.subscribe(["/ips/fixes", "/ips/verdicts", "/beacons", "/daemon/log"])
             await asyncio.sleep(0.2)  # the subscription reaches the server before the fixes do
