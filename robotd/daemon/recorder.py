@@ -3,9 +3,10 @@
 Theory of operation. `Recorder.write()` runs on the loop and never waits: it puts the event on a bounded queue, or
 counts it as dropped when the queue is full (a sink slower than the events: a stalled disk, an NFS mount gone away).
 One writer thread takes the events, encodes them and writes the lines (the meta line first): what came since it last
-woke, at once, then a flush, waking at most every WRITE_PERIOD_S, so the file is never more than a moment behind. A
-write that fails (ENOSPC, EIO, ...) ends the recording with one ERROR line: the thread closes the file and leaves, later
-events are counted as dropped, and the robot keeps running; an unexpected exception does the same with its traceback.
+woke, at once, then a flush, waking at most every drivers.pacing.BATCH_PERIOD_S, so the file is never more than a
+moment behind. A write that fails (ENOSPC, EIO, ...) ends the recording with one ERROR line: the thread closes the file
+and leaves, later events are counted as dropped, and the robot keeps running; an unexpected exception does the same
+with its traceback.
 
 An existing log is never overwritten nor appended to: `create_log` creates the file exclusively, and when the name is
 taken it takes the first free `NAME.1.jsonl`, `NAME.2.jsonl`, ... systemd restarts a failed robotd with the same
@@ -25,6 +26,7 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
+from drivers.pacing import sleep_out, take_waiting
 from robotd.config.model import RobotdConfig
 from robotd.logs.events import Event, Meta, encode
 
@@ -39,9 +41,6 @@ CLOSE_TIMEOUT_S = 2.0
 
 
 _IDLE_CHECK_S = 0.5  # how often an idle writer checks whether it was closed without being told (a full queue)
-# the writer wakes at most this often (as the live view's publisher, robotd.viz.live): woken for each of the 86 events a
-# second of the virtual robot driving, a line and a flush each, it took 0.52-0.59 % of a core; 0.43 % this way
-WRITE_PERIOD_S = 0.04
 
 
 class RecordingError(Exception):
@@ -150,16 +149,13 @@ class Recorder:
         try:
             while True:
                 try:
-                    items = [self._queue.get(timeout=_IDLE_CHECK_S)]
+                    first = self._queue.get(timeout=_IDLE_CHECK_S)
                 except queue.Empty:
                     if self._state is RecorderState.RECORDING:
                         continue
-                    items = [None]  # closed while the queue was too full to take the stop: drained now
+                    first = None  # closed while the queue was too full to take the stop: drained now
                 woke = time.monotonic()
-                with contextlib.suppress(queue.Empty):
-                    while items[-1] is not None:
-                        items.append(self._queue.get_nowait())
-                for item in items:
+                for item in take_waiting(first, self._queue):
                     if item is None:
                         self._stream.flush()
                         return
@@ -167,7 +163,7 @@ class Recorder:
                     if not isinstance(item, Meta):
                         self.written += 1
                 self._stream.flush()
-                time.sleep(max(0.0, woke + WRITE_PERIOD_S - time.monotonic()))
+                sleep_out(woke)
         except OSError as error:
             self._state = RecorderState.FAILED
             log.error(  # an operational failure: one line, no traceback

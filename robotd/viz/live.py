@@ -27,6 +27,7 @@ from foxglove import Context
 from foxglove.websocket import ServerListener, WebSocketServer
 
 from drivers.marvelmind.events import StationaryBeacons
+from drivers.pacing import sleep_out, take_waiting
 from robotd.config.model import RobotdConfig
 from robotd.config.viewer import ViewerConfig
 from robotd.estimation.fixgate import Diagnostics
@@ -38,10 +39,6 @@ from robotd.viz.publisher import Publisher, RobotModel
 log = logging.getLogger("robotd.viz")
 
 CLOSE_TIMEOUT_S = 2.0
-# the publishing thread wakes at most this often and publishes what came meanwhile in one go: on this machine a thread
-# woken for each item (about 200 a second while driving) spent several times the CPU of the same work done together,
-# as each wake-up starts from cold caches. 40 ms is below what a viewer's eye or plot notices
-PUBLISH_PERIOD_S = 0.04
 _STOP = ("stop",)
 
 
@@ -192,18 +189,15 @@ class LiveViewer:
 
     def _publish_all(self) -> None:
         """Publish the queued items in order until the stop item: all that came since the last wake-up at once, at
-        most once a PUBLISH_PERIOD_S."""
+        most once a drivers.pacing.BATCH_PERIOD_S."""
         while True:
-            items = [self._queue.get()]  # asleep until there is something to publish
+            first = self._queue.get()  # asleep until there is something to publish
             woke = time.monotonic()
-            with contextlib.suppress(queue.Empty):
-                while True:
-                    items.append(self._queue.get_nowait())
-            for item in items:
+            for item in take_waiting(first, self._queue):
                 if item[0] == "stop":
                     return
                 self._publish(item)
-            time.sleep(max(0.0, woke + PUBLISH_PERIOD_S - time.monotonic()))
+            sleep_out(woke)
 
     def _publish(self, item: tuple[Any, ...]) -> None:
         """One queued item published; a failure is logged once, with its traceback, and the thread goes on."""
