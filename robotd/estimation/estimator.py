@@ -461,7 +461,13 @@ class Estimator:
                 # before the newest step (a window begun there left the fix out, and a 2 Hz beacon's robot drove half
                 # a second more without a heading)
                 self._restart_window(t_meas)
-            aligner.record(x, y, t_meas, track.pose_at(t_meas))
+            # with the heading unknown the gate allows for the motion since the last fix in any direction (Predictor):
+            # a fix beyond it is one that no heading explains, an echo. In the window it would count against every
+            # rotation, and a burst of them (a third of the window's points) left it no heading at all while the
+            # robot drove on. With the heading known the window must see such fixes: a heading gone wrong is what
+            # makes good fixes look far
+            if verdict is not Verdict.GATED or self.modes.heading_known:
+                aligner.record(x, y, t_meas, track.pose_at(t_meas))
         if verdict is Verdict.ACCEPTED:
             anchor = self._fuse(prior, t_meas, (x, y, r), inn)
         elif verdict is Verdict.SEEDED or verdict is Verdict.RECOVERED:

@@ -685,3 +685,30 @@ def test_after_the_heading_is_lost_a_far_fix_is_held_by_the_distance_since_the_l
     record = est.on_fix(22.0, x + 1.5, y, 22.0)
     assert record is not None
     assert record.verdict is Verdict.UNCONFIRMED
+
+
+def test_a_burst_of_outliers_while_driving_with_the_heading_unknown_stays_out_of_the_heading_window() -> None:
+    # the libRSF robot's harsh fixes, seed 3: a burst of echoes (1-4.6 m away) for 1.6 s while the robot drove off with
+    # its heading unknown went into the alignment window; a third of its points off any fit, it gave no heading, and
+    # the position stayed behind the robot by the distance driven (0.39 m)
+    est = Estimator(_config(), GEOMETRY, (0.0, 0.0), CPR)  # the defaults: the heading unknown
+    rng = random.Random(5)
+    x, y, th = 1.0, 2.0, 2.4
+    errors = []
+    for k in range(1, 1001):
+        t = k * 0.01
+        vx, wz = (0.35, 0.1) if t > 1.0 else (0.0, 0.0)
+        x += vx * math.cos(th + 0.5 * wz * 0.01) * 0.01
+        y += vx * math.sin(th + 0.5 * wz * 0.01) * 0.01
+        th += wz * 0.01
+        est.on_twist(t, vx, 0.0, wz)
+        if k % 8 == 0:
+            if 1.5 < t < 3.1:  # the burst: every fix an echo
+                distance, direction = rng.uniform(1.0, 4.6), rng.uniform(-math.pi, math.pi)
+                est.on_fix(t, x + distance * math.cos(direction), y + distance * math.sin(direction), t)
+            else:
+                est.on_fix(t, x + rng.gauss(0, 0.03), y + rng.gauss(0, 0.03), t)
+        if t > 1.0:
+            errors.append(math.hypot(est.pose(t).x - x, est.pose(t).y - y))
+    assert est.counters["fixes_rejected"] >= 10  # the echoes were kept out of the estimate: the case under test
+    assert max(errors) < 0.15, max(errors)  # 0.37 m when the echoes went into the window
