@@ -36,6 +36,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="start robotd's filter from this calibration file (the daemon's ekf.calibration_file, or a replay's"
         " calibration.json), as the daemon starts after a restart",
     )
+    rep.add_argument(
+        "--sort",
+        action="store_true",
+        help="replay a log whose lines are not in time order (a merge of recordings) in the order of their times;"
+        " without it such a log is refused, as its arrival order is not known",
+    )
     rep.add_argument("--mcap", metavar="FILE.mcap", help="also write the log and every method's poses as MCAP")
     rep.add_argument(
         "--view",
@@ -82,6 +88,13 @@ def run_replay(args: argparse.Namespace) -> int:
         print(f"robotd replay: {args.log}: {error.strerror or error}", file=sys.stderr)
         return os.EX_NOINPUT
     read_problems = log.problems
+    if args.sort:
+        log, late = logcheck.in_time_order(log)
+        if late:
+            print(
+                f"robotd replay: {args.log}: {late} lines came after a later time: replayed in time order (--sort)",
+                file=sys.stderr,
+            )
     try:
         log, checked_problems, notes = logcheck.check(log, robot_from_log(log, config)[2])
     except logcheck.LogRefusedError as refusal:

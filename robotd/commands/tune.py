@@ -23,6 +23,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     tune.add_argument("--config", help="YAML configuration to start from (default: built-in defaults)")
     tune.add_argument("--out", metavar="FILE.yaml", help="write the YAML snippet here (default: print it)")
     tune.add_argument(
+        "--sort",
+        action="store_true",
+        help="take logs whose lines are not in time order (merges of recordings) in the order of their times",
+    )
+    tune.add_argument(
         "--lever-arm",
         action="store_true",
         help="fit the beacon's lever arm too (robot.ips_offset_m; from logs in which the robot turned): for a lever arm"
@@ -44,6 +49,13 @@ def run_tune(args: argparse.Namespace) -> int:
         except OSError as error:
             print(f"robotd tune: {path}: {error.strerror or error}", file=sys.stderr)
             return os.EX_NOINPUT
+        if args.sort:
+            log, late = logcheck.in_time_order(log)
+            if late:
+                print(
+                    f"robotd tune: {path}: {late} lines came after a later time: taken in time order (--sort)",
+                    file=sys.stderr,
+                )
         try:
             log = logcheck.check(log, robot_from_log(log, config)[2]).log
         except logcheck.LogRefusedError as refusal:

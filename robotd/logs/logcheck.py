@@ -13,7 +13,8 @@ line, as the reader reports its lines; only a log that cannot be replayed as a w
   between them is a bad line (a glitch or a corrupted count; no motor turns a wheel at 1600 turns a second);
 - times that go backwards refuse the whole log, with both lines: a sensor log is in arrival order, which is what
   makes its replay causal and the same as the daemon's run. Sorting it would invent an order no filter saw (a fix
-  fused before the odometry it arrived after), so it is left to the user who knows why the file is out of order;
+  fused before the odometry it arrived after), so it is left to the user who knows why the file is out of order (a
+  merge of several recordings): `in_time_order`, which `robotd replay --sort` and `robotd tune --sort` ask for;
 - a log with no event left is refused ("no events").
 """
 
@@ -164,8 +165,25 @@ def _backwards(times: npt.NDArray[np.float64], keep: npt.NDArray[np.bool_], wher
     before, after = int(kept[back[0]]), int(kept[back[0] + 1])
     return (
         f"{where(after)}: time goes backwards, t = {times[after]:.6f} s after t = {times[before]:.6f} s on "
-        f"{where(before)}: a sensor log is in arrival order (is it a merge of logs? sort it by t)"
+        f"{where(before)}: a sensor log is in arrival order (is it a merge of logs? --sort takes it in time order)"
     )
+
+
+def in_time_order(log: SensorLog) -> tuple[SensorLog, int]:
+    """The log's events in the order of their times (stable: events at one time keep their file order, a time that is
+    not a number last, where the check skips it) and how many came after a later one, for a log its user knows to be
+    a merge of recordings; never taken by default (see the module docstring)."""
+    events = log.events
+    times = [event.t for event in events]
+    order = sorted(range(len(events)), key=lambda i: (times[i] != times[i], times[i]))  # (NaN: not equal to itself)
+    late, newest = 0, -math.inf
+    for t in times:
+        late += t < newest
+        newest = max(newest, t)
+    if not late:
+        return log, 0
+    lines = [log.lines[i] for i in order] if len(log.lines) == len(events) else []
+    return SensorLog(log.meta, [events[i] for i in order], log.problems, log.unknown_types, lines), late
 
 
 def _wheel_samples(events: list[Event], times: npt.NDArray[np.float64], keep: npt.NDArray[np.bool_]) -> WheelSamples:

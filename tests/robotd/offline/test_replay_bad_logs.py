@@ -177,6 +177,25 @@ def test_a_log_whose_times_go_back_is_refused_at_that_line(tmp_path: Path, capsy
     assert not (out / "estimates.jsonl").exists()
 
 
+def test_a_merged_log_is_refused_unless_sort_is_asked_for_and_then_replays_as_the_log_in_order(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    lines = good_lines()
+    # two recordings merged one after the other: the fixes after the rest (each one arrives after a later line)
+    fixes = [line for line in lines[1:] if '"ips"' in line]
+    merged = [lines[0], *(line for line in lines[1:] if '"ips"' not in line), *fixes]
+    status, err, _ = replay(tmp_path, merged, capsys, "merged")
+    assert status == EX_DATAERR
+    assert "--sort takes it in time order" in err
+    _, _, in_order = replay(tmp_path, lines, capsys, "in-order")
+    log = tmp_path / "merged.jsonl"
+    out = tmp_path / "sorted-out"
+    assert cli.main(["replay", str(log), "--sort", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert f"{len(fixes)} lines came after a later time: replayed in time order (--sort)" in err, err
+    assert (out / "estimates.jsonl").read_bytes() == (in_order / "estimates.jsonl").read_bytes()
+
+
 def test_a_reversed_log_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     lines = good_lines()
     reversed_lines = [lines[0], *reversed(lines[1:])]
