@@ -13,6 +13,7 @@ from pathlib import Path
 from robotd.config.model import RobotdConfig, load, parse
 from robotd.daemon import calibration_store
 from robotd.logs import logcheck
+from robotd.logs.sensorlog import SensorLog
 from robotd.offline import librsf
 from robotd.offline.replay import format_table, replay, robot_from_log, write_outputs
 from robotd.viz.mcaplog import read_any_log
@@ -36,12 +37,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="start robotd's filter from this calibration file (the daemon's ekf.calibration_file, or a replay's"
         " calibration.json), as the daemon starts after a restart",
     )
-    rep.add_argument(
-        "--sort",
-        action="store_true",
-        help="replay a log whose lines are not in time order (a merge of recordings) in the order of their times;"
-        " without it such a log is refused, as its arrival order is not known",
-    )
+    add_sort_option(rep)
     rep.add_argument("--mcap", metavar="FILE.mcap", help="also write the log and every method's poses as MCAP")
     rep.add_argument(
         "--view",
@@ -88,13 +84,7 @@ def run_replay(args: argparse.Namespace) -> int:
         print(f"robotd replay: {args.log}: {error.strerror or error}", file=sys.stderr)
         return os.EX_NOINPUT
     read_problems = log.problems
-    if args.sort:
-        log, late = logcheck.in_time_order(log)
-        if late:
-            print(
-                f"robotd replay: {args.log}: {late} lines came after a later time: replayed in time order (--sort)",
-                file=sys.stderr,
-            )
+    log = in_order_if_asked(log, f"robotd replay: {args.log}", sort=args.sort)
     try:
         log, checked_problems, notes = logcheck.check(log, robot_from_log(log, config)[2])
     except logcheck.LogRefusedError as refusal:
@@ -124,6 +114,26 @@ def run_replay(args: argparse.Namespace) -> int:
         return write_and_view(log, result, config, out=out, mcap=args.mcap, view_port=args.view, written=written)
     print("wrote " + ", ".join(str(path) for path in written))
     return 0
+
+
+def add_sort_option(parser: argparse.ArgumentParser) -> None:
+    """--sort, for the commands that read sensor logs (robotd.logs.logcheck.in_time_order)."""
+    parser.add_argument(
+        "--sort",
+        action="store_true",
+        help="take a log whose lines are not in time order (a merge of recordings) in the order of their times;"
+        " without it such a log is refused, as its arrival order is not known",
+    )
+
+
+def in_order_if_asked(log: SensorLog, where: str, *, sort: bool) -> SensorLog:
+    """The log, in the order of its times when --sort asked for it; says on stderr how many lines came late."""
+    if not sort:
+        return log
+    log, late = logcheck.in_time_order(log)
+    if late:
+        print(f"{where}: {late} lines came after a later time: taken in time order (--sort)", file=sys.stderr)
+    return log
 
 
 def _report(log: str, problems: list[str]) -> None:

@@ -7,6 +7,7 @@ import os
 import sys
 from pathlib import Path
 
+from robotd.commands.replay import add_sort_option, in_order_if_asked
 from robotd.config.model import RobotdConfig, load, parse
 from robotd.logs import logcheck
 from robotd.logs.sensorlog import SensorLog, read_log
@@ -22,11 +23,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     tune.add_argument("logs", nargs="+", metavar="LOG", help="sensor logs (JSON Lines)")
     tune.add_argument("--config", help="YAML configuration to start from (default: built-in defaults)")
     tune.add_argument("--out", metavar="FILE.yaml", help="write the YAML snippet here (default: print it)")
-    tune.add_argument(
-        "--sort",
-        action="store_true",
-        help="take logs whose lines are not in time order (merges of recordings) in the order of their times",
-    )
+    add_sort_option(tune)
     tune.add_argument(
         "--lever-arm",
         action="store_true",
@@ -49,13 +46,7 @@ def run_tune(args: argparse.Namespace) -> int:
         except OSError as error:
             print(f"robotd tune: {path}: {error.strerror or error}", file=sys.stderr)
             return os.EX_NOINPUT
-        if args.sort:
-            log, late = logcheck.in_time_order(log)
-            if late:
-                print(
-                    f"robotd tune: {path}: {late} lines came after a later time: taken in time order (--sort)",
-                    file=sys.stderr,
-                )
+        log = in_order_if_asked(log, f"robotd tune: {path}", sort=args.sort)
         try:
             log = logcheck.check(log, robot_from_log(log, config)[2]).log
         except logcheck.LogRefusedError as refusal:

@@ -192,7 +192,7 @@ def test_a_merged_log_is_refused_unless_sort_is_asked_for_and_then_replays_as_th
     out = tmp_path / "sorted-out"
     assert cli.main(["replay", str(log), "--sort", "--out", str(out)]) == 0
     err = capsys.readouterr().err
-    assert f"{len(fixes)} lines came after a later time: replayed in time order (--sort)" in err, err
+    assert f"{len(fixes)} lines came after a later time: taken in time order (--sort)" in err, err
     assert (out / "estimates.jsonl").read_bytes() == (in_order / "estimates.jsonl").read_bytes()
 
 
