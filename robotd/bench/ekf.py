@@ -134,15 +134,21 @@ def write_hour_logs(folder: Path, loops: int) -> tuple[float, dict[str, Path]]:
     return last - first, paths
 
 
-def _replay_stages(log_path: Path, out: Path) -> tuple[float, float, float]:
-    """Seconds spent reading, replaying and writing, each on its own (to see where the time goes)."""
-    start = time.perf_counter()
-    log = read_log(log_path)
-    read = time.perf_counter()
-    result = replay(log, parse(""))
-    replayed = time.perf_counter()
-    write_outputs(result, out)
-    return read - start, replayed - read, time.perf_counter() - replayed
+def _replay_stages(log_path: Path, out: Path, runs: int) -> tuple[float, float, float]:
+    """Seconds spent reading, replaying and writing, each on its own (to see where the time goes): the run of `runs`
+    that took the least in all, so that its stages are one run's, as the end-to-end figure is its best run's."""
+    best = (math.inf, math.inf, math.inf)
+    for _ in range(runs):
+        start = time.perf_counter()
+        log = read_log(log_path)
+        read = time.perf_counter()
+        result = replay(log, parse(""))
+        replayed = time.perf_counter()
+        write_outputs(result, out)
+        stages = (read - start, replayed - read, time.perf_counter() - replayed)
+        if sum(stages) < sum(best):
+            best = stages
+    return best
 
 
 def _replay_seconds(log_path: Path, out: Path, runs: int) -> float:
@@ -185,11 +191,12 @@ def run(quick: bool) -> dict[str, float]:
         ):
             out = Path(folder) / "out"
             elapsed = _replay_seconds(paths[key], out, runs)
-            stages = _replay_stages(paths[key], out)
+            stages = _replay_stages(paths[key], out, runs)
+            apart = "one more run" if runs == 1 else f"the best of {runs} more runs"
             speed = seconds / elapsed
             target = f" (target >= {TARGET_X_REAL_TIME})" if key == "replay" else ""
             print(f"robotd replay of {seconds:.0f} s ({what}): {elapsed:.2f} s, {speed:.0f}x real time{target}")
-            print(f"  of which read {stages[0]:.2f} s, replay {stages[1]:.2f} s, write {stages[2]:.2f} s")
+            print(f"  taken apart ({apart}): read {stages[0]:.2f} s, replay {stages[1]:.2f} s, write {stages[2]:.2f} s")
             figures |= {
                 f"{key}_seconds": elapsed,
                 f"{key}_x_real_time": speed,
