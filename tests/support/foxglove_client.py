@@ -118,11 +118,15 @@ def _decoder(channel: dict[str, Any]) -> type[Message] | None:
     if channel["encoding"] == "json":
         return None
     assert channel["encoding"] == "protobuf", channel
-    files = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
+    return protobuf_class(channel["schemaName"], base64.b64decode(channel["schema"]))
+
+
+def protobuf_class(name: str, file_descriptor_set: bytes) -> type[Message]:
+    """The protobuf class of message `name` from a serialised FileDescriptorSet (a channel's or an MCAP schema's)."""
     pool = descriptor_pool.DescriptorPool()
-    for file in files.file:
+    for file in descriptor_pb2.FileDescriptorSet.FromString(file_descriptor_set).file:
         pool.Add(file)
-    decoder: type[Message] = message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
+    decoder: type[Message] = message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
     return decoder
 
 

@@ -9,8 +9,7 @@ import threading
 from pathlib import Path
 
 import pytest
-from foxglove_client import FoxgloveClient, playback_request
-from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from foxglove_client import FoxgloveClient, playback_request, protobuf_class
 from mcap.reader import make_reader
 from sim_logs import sim_config, simulated_text
 
@@ -62,10 +61,7 @@ def test_a_replays_trails_reach_back_as_far_as_the_live_views(tmp_path: Path) ->
     assert len(trails) > 20, "a trail a second over the whole log"
     schema, last = trails[-1]
     assert schema is not None
-    pool = descriptor_pool.DescriptorPool()
-    for file in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
-        pool.Add(file)
-    poses = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name)).FromString(last.data).poses
+    poses = protobuf_class(schema.name, schema.data).FromString(last.data).poses
     path = sum(
         math.hypot(b.position.x - a.position.x, b.position.y - a.position.y) for a, b in itertools.pairwise(poses)
     )
